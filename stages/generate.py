@@ -1,0 +1,34 @@
+"""Stage: render the miniature synthetic scene (ACE layout) into scene.path."""
+
+import logging
+import time
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from usvc.config import register_configs
+from usvc.errors import UsvcError
+from usvc.stage import is_multirun, job_dir, peak_memory_mb, stage_main, write_json
+from usvc.synth.params import RoomParams
+from usvc.synth.writer import generate_scene
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    if not cfg.scene.generated:
+        raise UsvcError(f"scene {cfg.scene.name!r} is not a generated scene (scene.generated=false)")
+    out = job_dir() / "raw" if is_multirun() else Path(cfg.scene.path)
+    t0 = time.perf_counter()
+    stats = generate_scene(out, RoomParams(**OmegaConf.to_container(cfg.generate)))
+    metrics = {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
+    write_json(job_dir() / "metrics.json" if is_multirun() else Path(cfg.results_dir) / cfg.scene.name / "generate.json", metrics)
+    log.info("generated %s in %.1f s", out, metrics["seconds"])
+
+
+if __name__ == "__main__":
+    main()

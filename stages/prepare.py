@@ -1,0 +1,32 @@
+"""Stage: import the scene from its source format and resize images to the working resolution."""
+
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig
+
+from usvc.atomic import atomic_dir
+from usvc.config import register_configs
+from usvc.importers import load_scene
+from usvc.prepare import prepare_scene
+from usvc.stage import peak_memory_mb, stage_main, stage_outputs, write_json
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    sc = cfg.scene
+    t0 = time.perf_counter()
+    scene = load_scene(sc.format, sc.path, sc.name, sc.split, sc.split_n, sc.metric_scale)
+    out, metrics_path = stage_outputs(cfg, "prepared")
+    with atomic_dir(out) as tmp:
+        stats = prepare_scene(scene, tmp, sc.working_width)
+    write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""Config: every YAML file sets every schema field, and bad keys/values fail naming the key."""
+
+import subprocess
+import sys
+from dataclasses import fields
+
+import pytest
+import yaml
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from conftest import REPO
+from usvc.config import GROUP_SCHEMAS, ConfigError, register_configs, validate
+
+register_configs()
+
+
+@pytest.mark.parametrize("group", sorted(GROUP_SCHEMAS))
+def test_every_yaml_sets_every_field(group):
+    """The YAML files are what DVC tracks, so no value may silently come from a dataclass default."""
+    names = {f.name for f in fields(GROUP_SCHEMAS[group])}
+    files = sorted((REPO / "conf" / group).glob("*.yaml"))
+    assert files
+    for path in files:
+        keys = set(yaml.safe_load(path.read_text())) - {"defaults"}
+        assert keys == names, f"{path}: missing {names - keys}, unknown {keys - names}"
+
+
+def _compose(overrides):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        return compose("config", overrides=overrides)
+
+
+@pytest.mark.parametrize("scene", sorted(p.stem for p in (REPO / "conf" / "scene").glob("*.yaml")))
+def test_every_scene_composes_and_validates(scene):
+    cfg = _compose([f"scene={scene}"])
+    validate(cfg)
+    assert cfg.scene.name == scene
+    assert cfg.scene.path == f"data/raw/{scene}", "dvc.yaml depends on data/raw/<scene>"
+
+
+def test_unknown_key_and_wrong_type_fail_at_compose():
+    with pytest.raises((ConfigCompositionException, ConfigKeyError), match="taux"):
+        _compose(["keypoints.taux=1"])
+    with pytest.raises((ConfigCompositionException, ValidationError), match="keypoints.tau"):
+        _compose(["keypoints.tau=abc"])
+
+
+def test_value_outside_choices_names_the_key():
+    with pytest.raises(ConfigError, match=r"sfm.matching='fancy'"):
+        validate(_compose(["sfm.matching=fancy"]))
+    with pytest.raises(ConfigError, match=r"keypoints.sigma"):
+        validate(_compose(["keypoints.sigma=0"]))
+
+
+def test_stage_reports_bad_config_in_one_line():
+    proc = subprocess.run([sys.executable, "-m", "stages.keypoints", "keypoints.weights=foo"],
+                          cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert "keypoints.weights='foo'" in proc.stderr + proc.stdout
+    assert "Traceback" not in proc.stderr + proc.stdout

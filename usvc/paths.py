@@ -1,0 +1,28 @@
+"""Where each stage's artifacts live; dvc.yaml spells the same paths."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class ScenePaths:
+    data_dir: Path
+    results_dir: Path
+    scene: str
+
+    @property
+    def prepared(self) -> Path:
+        return self.data_dir / self.scene / "prepared"
+
+    @property
+    def sfm(self) -> Path:
+        return self.data_dir / self.scene / "sfm"
+
+    @property
+    def keypoints(self) -> Path:
+        return self.data_dir / self.scene / "keypoints"
+
+    def metrics(self, stage: str) -> Path:
+        return self.results_dir / self.scene / f"{stage}.json"

@@ -1,0 +1,80 @@
+"""The prepared scene on disk: images at working resolution plus one `scene.h5` of metadata.
+
+Every stage after `prepare` reads this, never the source format, so importers run once.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from usvc.errors import SceneError
+from usvc.scene import CAMERA_MODELS, Camera, Frame, Scene
+
+SCENE_FILE = "scene.h5"
+IMAGE_DIR = "images"
+_MAX_PARAMS = max(CAMERA_MODELS.values())
+
+
+def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | None = None) -> None:
+    """Store frames, cameras and poses; images are referenced by name under IMAGE_DIR."""
+    n = len(scene.frames)
+    params = np.full((n, _MAX_PARAMS), np.nan)
+    for i, f in enumerate(scene.frames):
+        params[i, : len(f.camera.params)] = f.camera.params
+    R = np.stack([f.R if f.has_pose else np.full((3, 3), np.nan) for f in scene.frames])
+    t = np.stack([f.t if f.has_pose else np.full(3, np.nan) for f in scene.frames])
+    with h5py.File(path, "w") as h5:
+        h5.attrs["name"] = scene.name
+        h5.attrs["metric_scale"] = np.nan if scene.metric_scale is None else scene.metric_scale
+        h5.attrs["has_poses"] = scene.has_poses
+        str_dt = h5py.string_dtype()
+        h5.create_dataset("name", data=np.array([f.name for f in scene.frames], dtype=object), dtype=str_dt)
+        h5.create_dataset("split", data=np.array([f.split for f in scene.frames], dtype=object), dtype=str_dt)
+        h5.create_dataset("camera_model", data=np.array([f.camera.model for f in scene.frames], dtype=object), dtype=str_dt)
+        h5["camera_size"] = np.array([[f.camera.width, f.camera.height] for f in scene.frames], dtype=np.int32)
+        h5["camera_params"] = params
+        h5["R_world_to_cam"] = R
+        h5["t_world_to_cam"] = t
+        if depths is not None and any(d is not None for d in depths):
+            grp = h5.create_group("depth")
+            for i, d in enumerate(depths):
+                if d is not None:
+                    grp.create_dataset(str(i), data=d.astype(np.float32), compression="gzip")
+
+
+def read_scene_h5(prepared_dir: Path) -> Scene:
+    """Load a prepared scene; image paths point into the prepared image folder."""
+    prepared_dir = Path(prepared_dir)
+    path = prepared_dir / SCENE_FILE
+    if not path.is_file():
+        raise SceneError(f"prepared scene not found: {path} (run the prepare stage first)")
+    with h5py.File(path, "r") as h5:
+        names = [s.decode() if isinstance(s, bytes) else s for s in h5["name"][()]]
+        splits = [s.decode() if isinstance(s, bytes) else s for s in h5["split"][()]]
+        models = [s.decode() if isinstance(s, bytes) else s for s in h5["camera_model"][()]]
+        sizes = h5["camera_size"][()]
+        params = h5["camera_params"][()]
+        R, t = h5["R_world_to_cam"][()], h5["t_world_to_cam"][()]
+        has_poses = bool(h5.attrs["has_poses"])
+        scale = float(h5.attrs["metric_scale"])
+        name = str(h5.attrs["name"])
+    frames = []
+    for i, fname in enumerate(names):
+        cam = Camera(models[i], int(sizes[i, 0]), int(sizes[i, 1]),
+                     tuple(float(v) for v in params[i, : CAMERA_MODELS[models[i]]]))
+        frames.append(Frame(
+            name=fname, image_path=prepared_dir / IMAGE_DIR / fname, camera=cam, split=splits[i],
+            R=R[i] if has_poses else None, t=t[i] if has_poses else None,
+        ))
+    return Scene(name=name, frames=frames, metric_scale=None if np.isnan(scale) else scale, root=prepared_dir)
+
+
+def read_depth(prepared_dir: Path, index: int) -> np.ndarray | None:
+    """Depth of frame `index` in scene units at working resolution, if the scene has depth."""
+    with h5py.File(Path(prepared_dir) / SCENE_FILE, "r") as h5:
+        if "depth" not in h5 or str(index) not in h5["depth"]:
+            return None
+        return h5["depth"][str(index)][()]

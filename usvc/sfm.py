@@ -1,0 +1,167 @@
+"""Sparse reconstruction of the mapping images with pycolmap.
+
+Known poses are held fixed and only points are triangulated (COLMAP's point_triangulator);
+without poses a full incremental reconstruction runs instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from usvc.errors import SfmError
+from usvc.scene import Frame
+
+log = logging.getLogger(__name__)
+
+# Pose-guided pairs only between cameras whose viewing directions differ by less than this.
+_PAIR_MAX_ANGLE_DEG = 60.0
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    max_num_features: int
+    matching: str
+    exhaustive_max_images: int
+    sequential_overlap: int
+    pose_pairs_per_image: int
+    reconstruction: str
+    min_points: int
+    num_threads: int
+    seed: int
+
+
+def _camera_key(frame: Frame) -> tuple:
+    c = frame.camera
+    return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
+
+
+def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions) -> None:
+    """SIFT into a fresh database, one extraction run per distinct camera so intrinsics are exact."""
+    groups: dict[tuple, list[str]] = defaultdict(list)
+    for f in frames:
+        groups[_camera_key(f)].append(f.name)
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = opts.max_num_features
+    eo.num_threads = opts.num_threads
+    eo.use_gpu = False
+    for (model, _, _, params), names in groups.items():
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model = model
+        ro.camera_params = ",".join(repr(float(v)) for v in params)
+        pycolmap.extract_features(
+            db_path, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,
+        )
+
+
+def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
+    """Each image with its k nearest cameras (by centre) that look roughly the same way."""
+    centers = np.stack([f.center for f in frames])
+    dirs = np.stack([f.R[2] for f in frames])  # optical axis in world coordinates
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    cos = np.clip(dirs @ dirs.T, -1, 1)
+    dist[np.degrees(np.arccos(cos)) > _PAIR_MAX_ANGLE_DEG] = np.inf
+    np.fill_diagonal(dist, np.inf)
+    pairs: set[tuple[str, str]] = set()
+    for i in range(len(frames)):
+        for j in np.argsort(dist[i])[:k]:
+            if np.isfinite(dist[i, j]):
+                a, b = sorted((frames[i].name, frames[j].name))
+                pairs.add((a, b))
+    return sorted(pairs)
+
+
+def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool) -> str:
+    """Match with the configured strategy; `auto` is exhaustive for small scenes."""
+    mode = opts.matching
+    if mode == "auto":
+        if len(frames) <= opts.exhaustive_max_images:
+            mode = "exhaustive"
+        else:
+            mode = "poses" if has_poses else "sequential"
+    if mode == "poses" and not has_poses:
+        raise SfmError("sfm.matching=poses needs a scene with poses")
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
+    mo.use_gpu = False
+    if mode == "exhaustive":
+        pycolmap.match_exhaustive(db_path, matching_options=mo, device=pycolmap.Device.cpu)
+    elif mode == "sequential":
+        po = pycolmap.SequentialPairingOptions()
+        po.overlap = opts.sequential_overlap
+        pycolmap.match_sequential(db_path, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu)
+    else:
+        pairs_file = work_dir / "pairs.txt"
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pose_pairs(frames, opts.pose_pairs_per_image)))
+        po = pycolmap.ImportedPairingOptions()
+        po.match_list_path = pairs_file
+        pycolmap.match_image_pairs(db_path, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu)
+    return mode
+
+
+def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
+    """An empty model whose image ids are the database's and whose poses are the given ones."""
+    by_name = {f.name: f for f in frames}
+    db = pycolmap.Database.open(db_path)
+    try:
+        rec = pycolmap.Reconstruction()
+        for cam in db.read_all_cameras():
+            rec.add_camera_with_trivial_rig(cam)
+        for im in db.read_all_images():
+            f = by_name[im.name]
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(f.R), f.t)
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id), pose
+            )
+    finally:
+        db.close()
+    return rec
+
+
+def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
+                has_poses: bool) -> tuple[pycolmap.Reconstruction, dict]:
+    """Extract, match and triangulate (or map); returns the model and timing/strategy stats."""
+    if len(frames) < 2:
+        raise SfmError(f"SfM needs at least 2 mapping images, got {len(frames)}")
+    db_path = work_dir / "database.db"
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    extract(frames, image_dir, db_path, opts)
+    timings["extract_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    strategy = match(frames, db_path, work_dir, opts, has_poses)
+    timings["match_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mode = opts.reconstruction
+    if mode == "auto":
+        mode = "triangulate" if has_poses else "incremental"
+    if mode == "triangulate" and not has_poses:
+        raise SfmError("sfm.reconstruction=triangulate needs a scene with poses")
+    model_dir = work_dir / "colmap_work"
+    model_dir.mkdir(exist_ok=True)
+    if mode == "triangulate":
+        rec = pycolmap.triangulate_points(
+            _posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, refine_intrinsics=False
+        )
+    else:
+        po = pycolmap.IncrementalPipelineOptions()
+        po.random_seed = opts.seed
+        po.num_threads = opts.num_threads
+        models = pycolmap.incremental_mapping(db_path, image_dir, model_dir, options=po)
+        if not models:
+            raise SfmError("incremental mapping registered no images: too few matches")
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+    timings["reconstruct_s"] = time.perf_counter() - t0
+    if rec.num_points3D() < opts.min_points:
+        raise SfmError(
+            f"SfM triangulated only {rec.num_points3D()} points from {len(frames)} images "
+            f"(sfm.min_points={opts.min_points}): too few matches, a degenerate scene or wrong poses"
+        )
+    return rec, {"matching": strategy, "reconstruction": mode, **timings}

@@ -1,0 +1,71 @@
+"""The shared shell of every stage entry point: validate config, run, report errors in one line."""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from usvc.atomic import atomic_file
+from usvc.config import validate
+from usvc.errors import UsvcError
+from usvc.paths import ScenePaths
+
+log = logging.getLogger("usvc")
+
+
+def is_multirun() -> bool:
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def job_dir() -> Path:
+    """This job's own directory: where a --multirun job writes instead of the DVC artifact."""
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def scene_paths(cfg: DictConfig) -> ScenePaths:
+    return ScenePaths(Path(cfg.data_dir), Path(cfg.results_dir), cfg.scene.name)
+
+
+def write_json(path: Path, payload: dict[str, Any]) -> None:
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
+
+
+def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
+    """Validate, run, and turn a UsvcError into one log line and exit status 1."""
+
+    @functools.wraps(fn)
+    def wrapper(cfg: DictConfig) -> None:
+        try:
+            validate(cfg)
+            log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
+            fn(cfg)
+        except UsvcError as err:
+            log.error("%s failed: %s", Path(sys.argv[0]).stem, err)
+            sys.exit(1)
+
+    return wrapper
+
+
+def stage_outputs(cfg: DictConfig, stage: str) -> tuple[Path, Path]:
+    """(artifact dir, metrics file): the DVC-tracked paths, or this job's own under --multirun."""
+    if is_multirun():
+        return job_dir() / stage, job_dir() / "metrics.json"
+    paths = scene_paths(cfg)
+    return getattr(paths, stage), paths.metrics(stage)
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process (ru_maxrss is KiB on Linux)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
