@@ -59,7 +59,10 @@ def project(camera: Camera, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.n
     assert z > 0
     x, y = x / z, y / z
     p = camera.params
-    if camera.model == "OPENCV":
+    if camera.model == "SIMPLE_RADIAL":
+        scale = 1 + p[3] * (x * x + y * y)
+        x, y = x * scale, y * scale
+    elif camera.model == "OPENCV":
         k1, k2, p1, p2 = p[4:]
         r2 = x * x + y * y
         radial = k1 * r2 + k2 * r2 * r2
@@ -274,22 +277,25 @@ def test_transforms_bad_matrix(tmp_path: Path) -> None:
 def colmap_scene(root: Path, text: bool, model: str = "PINHOLE") -> dict[str, GtCam]:
     """A pycolmap reconstruction written to root/sparse/0 with images in root/images."""
     W, H = 36, 24
-    params = {"PINHOLE": [40.0, 41.0, W / 2, H / 2], "SIMPLE_RADIAL": [40.0, W / 2, H / 2, 0.0],
+    params = {"PINHOLE": [40.0, 41.0, W / 2, H / 2], "SIMPLE_RADIAL": [40.0, W / 2, H / 2, 0.03],
+              "OPENCV": [40.0, 41.0, W / 2, H / 2, 0.05, -0.01, 0.002, -0.001],
               "OPENCV_FISHEYE": [40.0, 41.0, W / 2, H / 2, 0, 0, 0, 0]}[model]
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=1))
-    cam = Camera(model, W, H, tuple(params)) if model != "OPENCV_FISHEYE" else None
+    fisheye = model == "OPENCV_FISHEYE"
+    cam = Camera("PINHOLE", W, H, tuple(params[:4])) if fisheye else Camera(model, W, H, tuple(params))
     gts = {}
     for image_id, name in enumerate(["frame10.png", "frame2.png", "frame1.png"], start=1):
-        gt = make_gt(70 + image_id, cam or Camera("PINHOLE", W, H, tuple(params[:4])))
+        gt = make_gt(70 + image_id, cam)
         gts[f"images/{name}"] = gt
         rec.add_image_with_trivial_frame(
             pycolmap.Image(name=name, camera_id=1, image_id=image_id),
             pycolmap.Rigid3d(pycolmap.Rotation3d(gt.R), gt.t),
         )
         write_image(root / "images" / name, W, H)
-        # pycolmap's own projection is the independent ground truth for the pixel convention
-        np.testing.assert_allclose(rec.image(image_id).project_point(X_WORLD), project(gt.camera, gt.R, gt.t, X_WORLD), atol=1e-9)
+        # pycolmap's own projection independently checks this file's projection formula
+        if not fisheye:
+            np.testing.assert_allclose(rec.image(image_id).project_point(X_WORLD), project(gt.camera, gt.R, gt.t, X_WORLD), atol=1e-9)
     out = root / "sparse" / "0"
     out.mkdir(parents=True)
     rec.write_text(str(out)) if text else rec.write(str(out))
@@ -311,10 +317,13 @@ def test_colmap_reprojects_binary_and_text(tmp_path: Path, text: bool) -> None:
     assert len(load_scene("colmap", tmp_path / "sparse" / "0", "toy", "every_nth", 2).frames) == 3
 
 
-def test_colmap_simple_radial_passes_through(tmp_path: Path) -> None:
-    colmap_scene(tmp_path, text=False, model="SIMPLE_RADIAL")
+@pytest.mark.parametrize("model", ["SIMPLE_RADIAL", "OPENCV"])
+def test_colmap_distorted_models_pass_through(tmp_path: Path, model: str) -> None:
+    gts = colmap_scene(tmp_path, text=False, model=model)
     scene = load_scene("colmap", tmp_path, "toy", "every_nth", 2)
-    assert scene.frames[0].camera.model == "SIMPLE_RADIAL"
+    for frame in scene.frames:
+        assert frame.camera.model == model and frame.camera.has_distortion
+        assert_reprojects(frame, gts[frame.name])
 
 
 def test_colmap_unsupported_model(tmp_path: Path) -> None:

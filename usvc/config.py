@@ -47,7 +47,7 @@ class SfmConfig:
 @dataclass
 class KeypointsConfig:
     tau: float = 1.5
-    sigma: float = 0.25
+    sigma: float = 0.15
     weights: str = "uniform"  # uniform | reprojection
     reprojection_scale_px: float = 1.0
     min_track_length: int = 2

@@ -55,7 +55,10 @@ def load_scene(
         raise SceneError(f"scene {name!r}: path {root} does not exist")
     root = root.resolve()
     module = importlib.import_module(f"usvc.importers.{_MODULES[fmt]}")
-    scene: Scene = module.load(root, name, split_rule, split_n, metric_scale)
+    try:
+        scene: Scene = module.load(root, name, split_rule, split_n, metric_scale)
+    except OSError as e:  # permissions, broken links: still one line naming the file
+        raise SceneError(f"scene {name!r}: {e}") from None
     scene.check_images_exist()
     for which in ("train", "test"):
         scene.split(which)
@@ -108,15 +111,15 @@ def read_matrix_txt(path: Path) -> np.ndarray:
         raise SceneError(f"{path}: not a numeric matrix ({e})") from None
 
 
-def as_matrix(value: Any, shapes: Iterable[tuple[int, int]], where: str) -> np.ndarray:
+def as_matrix(value: Any, shapes: Iterable[tuple[int, int]], where: str, what: str = "pose") -> np.ndarray:
     """Convert nested lists to a float matrix of one of ``shapes`` or fail naming ``where``."""
     shapes = tuple(shapes)
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise SceneError(f"{where}: pose is not a numeric matrix") from None
+        raise SceneError(f"{where}: {what} is not a numeric matrix") from None
     if m.shape not in shapes:
-        raise SceneError(f"{where}: pose has shape {m.shape}, expected one of {list(shapes)}")
+        raise SceneError(f"{where}: {what} has shape {m.shape}, expected one of {list(shapes)}")
     return m
 
 

@@ -45,7 +45,7 @@ def _camera(calib_file: Path, size: tuple[int, int]) -> Camera:
         if not (np.isfinite(f) and f > 0):
             raise SceneError(f"{calib_file}: focal length must be positive, got {f}")
         return make_camera(where, "PINHOLE", W, H, (f, f, W / 2.0, H / 2.0))
-    K = as_matrix(m, [(3, 3)], where)
+    K = as_matrix(m, [(3, 3)], where, "calibration")
     return make_camera(where, "PINHOLE", W, H, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
 
 

@@ -28,6 +28,8 @@ def _read_poses_bounds(path: Path) -> np.ndarray:
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise SceneError(f"{path}: unreadable pose file ({e})") from None
+    if not isinstance(arr, np.ndarray):
+        raise SceneError(f"{path}: expected one .npy array, found an .npz archive")
     if arr.ndim != 2 or arr.shape[1] != 17 or not np.issubdtype(arr.dtype, np.number):
         raise SceneError(f"{path}: expected a numeric (N, 17) array, got {arr.dtype} {arr.shape}")
     return arr.astype(np.float64)

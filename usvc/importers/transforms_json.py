@@ -56,6 +56,14 @@ def _number(d: dict[str, Any], key: str, where: str) -> float:
         raise SceneError(f"{where}: {key!r} is not a number ({d[key]!r})") from None
 
 
+def _focal_from_angle(size: float, intr: dict[str, Any], key: str, where: str) -> float:
+    """Focal in pixels from a full field-of-view angle in radians (instant-ngp / Blender)."""
+    angle = _number(intr, key, where)
+    if not 0.0 < angle < math.pi:
+        raise SceneError(f"{where}: {key!r} must be in (0, pi) radians, got {angle}")
+    return 0.5 * size / math.tan(0.5 * angle)
+
+
 def _match_key(file_path: str) -> str:
     """Normalised relative path without an image extension, to match split lists to frames."""
     p = PurePosixPath(os.path.normpath(str(file_path).replace("\\", "/")))
@@ -88,13 +96,13 @@ def _camera(intr: dict[str, Any], image: Path, where: str) -> Camera:
     if "fl_x" in intr:
         fx = _number(intr, "fl_x", where)
     elif "camera_angle_x" in intr:
-        fx = 0.5 * w / math.tan(0.5 * _number(intr, "camera_angle_x", where))
+        fx = _focal_from_angle(w, intr, "camera_angle_x", where)
     else:
         raise SceneError(f"{where}: neither 'fl_x' nor 'camera_angle_x' is given")
     if "fl_y" in intr:
         fy = _number(intr, "fl_y", where)
     elif "camera_angle_y" in intr:
-        fy = 0.5 * h / math.tan(0.5 * _number(intr, "camera_angle_y", where))
+        fy = _focal_from_angle(h, intr, "camera_angle_y", where)
     else:
         fy = fx
     cx = _number(intr, "cx", where) if "cx" in intr else w / 2.0
@@ -140,11 +148,14 @@ def _frames_from(json_path: Path, root: Path) -> list[tuple[str, Frame]]:
     return out
 
 
-def _given_lists(data: dict[str, Any]) -> tuple[set[str], set[str]] | None:
+def _given_lists(data: dict[str, Any], path: Path) -> tuple[set[str], set[str]] | None:
     """nerfstudio's split lists (test falls back to val, as nerfstudio itself does)."""
     test_key = "test_filenames" if "test_filenames" in data else "val_filenames"
     if "train_filenames" not in data or test_key not in data:
         return None
+    for key in ("train_filenames", test_key):
+        if not isinstance(data[key], list):
+            raise SceneError(f"{path}: {key!r} must be a list of file names")
     return {_match_key(s) for s in data["train_filenames"]}, {_match_key(s) for s in data[test_key]}
 
 
@@ -176,7 +187,7 @@ def load(root: Path, name: str, split_rule: str, split_n: int, metric_scale: flo
         raise SceneError(f"scene {name!r}: no {MAIN_FILE} (or {' + '.join(BLENDER_FILES.values())}) in {base}")
 
     if split_rule == "given":
-        lists = _given_lists(_read_json(main)) if main.is_file() else None
+        lists = _given_lists(_read_json(main), main) if main.is_file() else None
         if lists is not None:
             frames = _split_by_lists(_frames_from(main, base), lists, main)
         elif has_blender:
