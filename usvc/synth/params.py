@@ -28,12 +28,12 @@ class RoomParams:
     n_wall_objects: int = 3  # thin boxes hanging on walls (shelves, pictures)
     # Textures.
     texture_resolution: float = 256.0  # texels per metre
-    patch_density: float = 40.0  # painted shapes per square metre of surface
+    patch_density: float = 14.0  # painted shapes per square metre of surface
     texture_noise: float = 0.04  # std of the per-texel albedo noise (albedo is in [0, 1])
     image_noise: float = 1.0  # std of the per-pixel sensor noise in 8-bit levels
     # Lighting: ambient + Lambertian point lights under the ceiling, hard box shadows.
     ambient: float = 0.4
-    light_intensity: float = 0.8
+    light_intensity: float = 0.65
     n_lights: int = 2
     shadows: bool = True
     # Trajectories.

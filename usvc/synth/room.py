@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 
 CAMERA_Z_RANGE = (1.2, 1.65)  # camera heights; free-standing boxes stay below CENTRE_BOX_MAX_Z
 CENTRE_BOX_MAX_Z = 0.8
-WALL_BAND_DEPTH = 0.42  # floor boxes away from the centre hug a wall within this depth
+WALL_BAND_DEPTH = 0.35  # floor boxes away from the centre hug a wall within this depth
 _PLACEMENT_TRIES = 200
 
 
@@ -49,7 +49,8 @@ class Layout:
         return dist
 
 
-def _overlaps(lo: np.ndarray, hi: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]], margin: float) -> bool:
+def _overlaps(lo: np.ndarray, hi: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]],
+              margin: float) -> bool:
     return any(np.all(lo < bh + margin) and np.all(blo < hi + margin) for blo, bh in boxes)
 
 
@@ -83,8 +84,8 @@ def make_layout(params: RoomParams) -> Layout:
                 lo, hi = centre - half, centre + half
                 hi[2] = rng.uniform(0.35, CENTRE_BOX_MAX_Z)
             else:  # cupboards and crates along the walls, possibly taller than the cameras
-                lo, hi = _wall_box(rng, room, rng.uniform(0.3, 1.0), rng.uniform(0.2, WALL_BAND_DEPTH - 0.06),
-                                   rng.uniform(0.0, 0.06), 0.0, rng.uniform(0.3, 1.5))
+                lo, hi = _wall_box(rng, room, rng.uniform(0.3, 1.0), rng.uniform(0.2, WALL_BAND_DEPTH - 0.05),
+                                   rng.uniform(0.0, 0.05), 0.0, rng.uniform(0.3, 1.5))
             if not _overlaps(lo, hi, boxes, 0.05):
                 boxes.append((lo, hi))
                 break
@@ -117,32 +118,68 @@ def _safe_inverse(dirs: np.ndarray) -> np.ndarray:
     return 1.0 / np.where(np.abs(dirs) < tiny, tiny, dirs)
 
 
-def cast(origin: np.ndarray, dirs: np.ndarray, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hit of rays ``origin + t * dirs`` (dirs (3, N)) from inside the room: (t, box index).
+def pixel_rects(layout: Layout, cam_to_world: np.ndarray, focal: float, width: int,
+                height: int) -> list[tuple[int, int, int, int] | None]:
+    """Per box, the pixel rows/columns (r0, r1, c0, c1) its projection can cover; None = all.
+
+    A ray can only hit a box wholly in front of the camera inside the bounding rectangle of its
+    projected corners, so ray casting tests just that window. Box 0 (the room) is always None.
+    """
+    rot, centre = cam_to_world[:3, :3], cam_to_world[:3, 3]
+    rects: list[tuple[int, int, int, int] | None] = [None]
+    for lo, hi in zip(layout.lo[1:], layout.hi[1:]):
+        corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, 8).T
+        cam = (corners - centre) @ rot
+        if (cam[:, 2] <= 1e-6).all():
+            rects.append((0, 0, 0, 0))  # behind the camera
+            continue
+        if (cam[:, 2] <= 1e-6).any():
+            rects.append(None)
+            continue
+        u = focal * cam[:, 0] / cam[:, 2] + width / 2
+        v = focal * cam[:, 1] / cam[:, 2] + height / 2
+        c0, c1 = int(np.clip(np.floor(u.min()) - 2, 0, width)), int(np.clip(np.ceil(u.max()) + 2, 0, width))
+        r0, r1 = int(np.clip(np.floor(v.min()) - 2, 0, height)), int(np.clip(np.ceil(v.max()) + 2, 0, height))
+        rects.append((r0, r1, c0, c1))
+    return rects
+
+
+def cast(origin: np.ndarray, dirs: np.ndarray, layout: Layout,
+         rects: list[tuple[int, int, int, int] | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hit of rays ``origin + t * dirs`` (dirs (3, H, W)) from inside the room: (t, face).
 
     The room is convex and closed, so every ray hits something; t is in units of ``dirs``.
+    ``rects`` (from :func:`pixel_rects`) limits each box's test to a window of the grid.
     """
-    dtype = dirs.dtype
     inv = _safe_inverse(dirs)
-    rel_lo = (layout.lo - origin).astype(dtype)[:, :, None]
-    rel_hi = (layout.hi - origin).astype(dtype)[:, :, None]
-    t = np.maximum(rel_lo[0] * inv, rel_hi[0] * inv).min(axis=0)  # exit through the room
-    obj = np.zeros(t.shape, dtype=np.int16)
+    positive = dirs > 0
+    rel_lo = (layout.lo - origin).astype(dirs.dtype)
+    rel_hi = (layout.hi - origin).astype(dirs.dtype)
+    exits = [np.maximum(rel_lo[0, a] * inv[a], rel_hi[0, a] * inv[a]) for a in range(3)]
+    t = np.minimum(exits[0], exits[1])
+    axis = np.where(exits[2] <= t, 2, exits[1] < exits[0]).astype(np.int16)
+    np.minimum(t, exits[2], out=t)
+    side = np.where(axis == 0, positive[0], np.where(axis == 1, positive[1], positive[2]))
+    face = 2 * axis + side  # the room exits through the hi plane of an axis it moves up along
     for b in range(1, layout.n_boxes):
-        t1, t2 = rel_lo[b] * inv, rel_hi[b] * inv
-        near = np.minimum(t1, t2).max(axis=0)
-        far = np.maximum(t1, t2).min(axis=0)
-        hit = (near <= far) & (near > 0) & (near < t)
-        np.copyto(t, near, where=hit)
-        obj[hit] = b
-    return t, obj
-
-
-def face_ids(points: np.ndarray, obj: np.ndarray, layout: Layout) -> np.ndarray:
-    """Face index of hit points (3, N) on boxes ``obj``: the box plane the point lies on."""
-    dist = np.concatenate([np.abs(points - layout.lo[obj].T), np.abs(points - layout.hi[obj].T)])
-    k = dist.argmin(axis=0)  # 0..2: lo planes x,y,z; 3..5: hi planes
-    return obj.astype(np.int32) * 6 + (k % 3) * 2 + k // 3
+        rect = rects[b] if rects is not None else None
+        win = (slice(None),) if rect is None else (slice(rect[0], rect[1]), slice(rect[2], rect[3]))
+        inv_w, t_w, face_w = inv[(slice(None), *win)], t[win], face[win]
+        if t_w.size == 0:
+            continue
+        t1 = rel_lo[b][:, None, None] * inv_w
+        t2 = rel_hi[b][:, None, None] * inv_w
+        tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+        near = np.maximum(np.maximum(tmin[0], tmin[1]), tmin[2])
+        far = np.minimum(np.minimum(tmax[0], tmax[1]), tmax[2])
+        hit = (near <= far) & (near > 0) & (near < t_w)
+        if not hit.any():
+            continue
+        t_w[hit] = near[hit]
+        entry = tmin[:, hit].argmax(axis=0)  # the slab entered last is the face hit
+        moving_down = np.take_along_axis(inv_w[:, hit], entry[None], axis=0)[0] < 0
+        face_w[hit] = 6 * b + 2 * entry + moving_down  # moving down, a box is entered at its hi plane
+    return t, face
 
 
 def face_normal(face: int) -> np.ndarray:

@@ -1,8 +1,9 @@
-"""Procedural surface textures: corner-rich, never periodic over a whole face, distinct per face.
+"""Procedural surface textures, lit and packed into one atlas that frames are sampled from.
 
-Each face draws its shapes from its own seeded generator, so no two surfaces (and no two
-seeds) share a pattern that SIFT could confuse. Shapes span 2 cm to tens of cm so they stay
-visible at the 0.5-4 m viewing distances of the room.
+Textures are corner-rich, never periodic over a whole face, and distinct per face: each face
+draws its shapes from its own seeded generator, so no two surfaces (and no two seeds) share a
+pattern that SIFT could confuse. Shapes span 2 cm to tens of cm so they stay visible at the
+0.5-4 m viewing distances of the room.
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ def _hsv(h: float, s: float, v: float) -> np.ndarray:
 def scene_palette(seed: int) -> dict[str, np.ndarray]:
     """Per-scene colours: muted walls, a darker floor, and 16 accent colours in [0, 1]."""
     rng = np.random.default_rng([seed, 202])
-    accents = np.array([_hsv(rng.random(), rng.uniform(0.2, 0.95), rng.uniform(0.2, 0.95)) for _ in range(16)])
+    accents = np.array([_hsv(rng.random(), rng.uniform(0.2, 0.95), rng.uniform(0.2, 0.95))
+                        for _ in range(16)])
     return {
         "wall": _hsv(rng.random(), rng.uniform(0.05, 0.35), rng.uniform(0.55, 0.85)),
         "floor": _hsv(rng.random(), rng.uniform(0.1, 0.5), rng.uniform(0.3, 0.6)),
@@ -77,11 +79,13 @@ def _shape(canvas: np.ndarray, rng: np.random.Generator, size: float, region: tu
     aspect = float(np.exp(rng.uniform(-0.7, 0.7)))
     sw, sh = max(3.0, size * aspect), max(3.0, size / aspect)
     cx, cy = rng.uniform(x0, x1), rng.uniform(y0, y1)
-    xa, ya = int(np.clip(cx - sw / 2, 0, canvas.shape[1] - 1)), int(np.clip(cy - sh / 2, 0, canvas.shape[0] - 1))
-    xb, yb = int(np.clip(cx + sw / 2, xa + 1, canvas.shape[1])), int(np.clip(cy + sh / 2, ya + 1, canvas.shape[0]))
+    h, w = canvas.shape[:2]
+    xa, ya = int(np.clip(cx - sw / 2, 0, w - 1)), int(np.clip(cy - sh / 2, 0, h - 1))
+    xb, yb = int(np.clip(cx + sw / 2, xa + 1, w)), int(np.clip(cy + sh / 2, ya + 1, h))
     colour = _colour(rng, accents)
     if kind == "rect":
-        cv2.rectangle(canvas, (xa, ya), (xb - 1, yb - 1), colour, -1 if rng.random() < 0.7 else max(1, int(size / 15)))
+        thickness = -1 if rng.random() < 0.7 else max(1, int(size / 15))  # filled, or an outline
+        cv2.rectangle(canvas, (xa, ya), (xb - 1, yb - 1), colour, thickness)
     elif kind in ("checker", "stripes"):
         yy, xx = np.mgrid[0:yb - ya, 0:xb - xa]
         period = rng.uniform(max(3.0, size / 10), max(4.0, size / 3))
@@ -129,14 +133,15 @@ def surface_texture(seed: int, face: int, kind: str, width: int, height: int, re
         base = accents[rng.integers(len(accents))] * rng.uniform(0.8, 1.1)
     else:
         base = palette[kind] * rng.uniform(0.92, 1.05)
-    base_field = 1.0 + 0.12 * _smooth_field(rng, height, width, 0.3 * res, 3)
+    base_field = 1.0 + 0.1 * _smooth_field(rng, height, width, 0.3 * res, 1)  # uneven paint, not rainbow
+    base_field = base_field + 0.03 * _smooth_field(rng, height, width, 0.3 * res, 3)
     canvas = np.clip(base * base_field * 255, 0, 255).astype(np.uint8)
     if kind in ("floor", "ceiling"):
         tile = palette["tile"][0 if kind == "floor" else 1] * res
         _tiles(canvas, rng, tile, tuple(int(v) for v in (base * 0.45 * 255)))
     area = width * height / res**2
-    scale = {"floor": 0.6, "ceiling": 0.35, "wall": 1.0, "object": 1.8}[kind]
-    max_size = min(0.6, 0.7 * min(width, height) / res)
+    scale = {"floor": 0.6, "ceiling": 0.35, "wall": 1.0, "object": 2.5}[kind]
+    max_size = min(0.45, 0.7 * min(width, height) / res)
     n = int(np.ceil(density * scale * area))
     sizes = np.exp(rng.uniform(np.log(0.02), np.log(max(max_size, 0.03)), n)) * res
     for size in np.sort(sizes)[::-1]:  # large shapes first so small ones stay visible on top
@@ -149,6 +154,7 @@ def surface_texture(seed: int, face: int, kind: str, width: int, height: int, re
 
 _TANGENTS = {0: (1, 2), 1: (0, 2), 2: (0, 1)}  # face normal axis -> (u axis, v axis)
 _ATLAS_WIDTH = 2048
+_LIGHT_STEP = 4  # texels between irradiance samples
 
 
 @dataclass(frozen=True)
@@ -162,22 +168,27 @@ class Atlas:
     image: np.ndarray  # (H, W, 3) float32, 8-bit scale
     ua: np.ndarray  # per face: world axis along texture columns
     va: np.ndarray  # per face: world axis along texture rows
-    u0: np.ndarray  # per face: world coordinate of column 0's edge
-    v0: np.ndarray  # per face: world coordinate of row 0's edge
-    su: np.ndarray  # per face: columns per metre
+    su: np.ndarray  # per face: columns per metre (negative: columns run down the u axis)
     sv: np.ndarray  # per face: rows per metre (negative: rows run down the z axis)
+    u_shift: np.ndarray  # per face: u0 * su + 0.5 with u0 the u of column 0's edge, so col = u * su - u_shift
+    v_shift: np.ndarray  # per face: v0 * sv + 0.5
     last_col: np.ndarray
     last_row: np.ndarray
     ox: np.ndarray  # per face: atlas column offset
     oy: np.ndarray  # per face: atlas row offset
 
     def lookup(self, points: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Atlas (column, row) of surface points (3, N) on faces (N,), pixel centres at integers."""
-        pu = np.take_along_axis(points, self.ua[face][None], axis=0)[0]
-        pv = np.take_along_axis(points, self.va[face][None], axis=0)[0]
-        col = np.clip((pu - self.u0[face]) * self.su[face] - 0.5, 0.0, self.last_col[face]) + self.ox[face]
-        row = np.clip((pv - self.v0[face]) * self.sv[face] - 0.5, 0.0, self.last_row[face]) + self.oy[face]
-        return col.astype(np.float32), row.astype(np.float32)
+        """Atlas (column, row) float32 maps of surface points (3, ...) on faces (...).
+
+        Atlas pixel centres are at integer coordinates (cv2.remap's convention); each face's
+        coordinates are clamped to its own texels so bilinear lookups never bleed across faces.
+        """
+        u_is_y, v_is_y = self.ua[face] == 1, self.va[face] == 1  # u is x or y; v is y or z
+        pu = np.where(u_is_y, points[1], points[0])
+        pv = np.where(v_is_y, points[1], points[2])
+        col = np.clip(pu * self.su[face] - self.u_shift[face], 0.0, self.last_col[face]) + self.ox[face]
+        row = np.clip(pv * self.sv[face] - self.v_shift[face], 0.0, self.last_row[face]) + self.oy[face]
+        return col, row
 
 
 def _face_kind(face: int) -> str:
@@ -199,40 +210,55 @@ def _pack(sizes: list[tuple[int, int]]) -> tuple[list[tuple[int, int]], int]:
     return offsets, y + shelf
 
 
+def _face_light(layout: Layout, params: RoomParams, face: int, u_edge: float, su: float, v_edge: float,
+                sv: float, width: int, height: int) -> np.ndarray:
+    """(height, width, 1) irradiance of a face's texels, computed every few texels and upsampled.
+
+    Irradiance is smooth except at shadow edges, which this softens to about a centimetre.
+    """
+    box, axis, side = face // 6, (face % 6) // 2, face % 2
+    ua, va = _TANGENTS[axis]
+    cw, ch = max(2, -(-width // _LIGHT_STEP)), max(2, -(-height // _LIGHT_STEP))
+    cols, rows = np.meshgrid((np.arange(cw) + 0.5) * width / cw, (np.arange(ch) + 0.5) * height / ch)
+    points = np.empty((3, ch * cw))
+    points[axis] = layout.hi[box, axis] if side else layout.lo[box, axis]
+    points[ua] = u_edge + cols.ravel() / su
+    points[va] = v_edge + rows.ravel() / sv
+    coarse = shading(points, face_normal(face), layout, params).reshape(ch, cw)
+    return cv2.resize(coarse, (width, height), interpolation=cv2.INTER_LINEAR)[..., None]
+
+
 def build_atlas(layout: Layout, params: RoomParams) -> Atlas:
     """Texture, light and pack every face of the layout (room faces 0-5, then object faces)."""
     palette = scene_palette(params.seed)
     res = params.texture_resolution
-    n_faces = 6 * layout.n_boxes
-    rows: dict[str, list[float]] = {k: [] for k in ("ua", "va", "u0", "v0", "su", "sv", "last_col", "last_row")}
+    keys = ("ua", "va", "su", "sv", "u_shift", "v_shift", "last_col", "last_row")
+    table: dict[str, list[float]] = {k: [] for k in keys}
     images = []
-    for face in range(n_faces):
-        box, axis, side = face // 6, (face % 6) // 2, face % 2
+    for face in range(6 * layout.n_boxes):
+        box, axis = face // 6, (face % 6) // 2
         lo, hi = layout.lo[box], layout.hi[box]
         ua, va = _TANGENTS[axis]
         width = max(2, int(np.ceil((hi[ua] - lo[ua]) * res)))
         height = max(2, int(np.ceil((hi[va] - lo[va]) * res)))
-        su = width / (hi[ua] - lo[ua])
-        flip = va == 2  # vertical faces: row 0 at the top, like a picture on the wall
-        sv = -height / (hi[va] - lo[va]) if flip else height / (hi[va] - lo[va])
-        v0 = hi[va] if flip else lo[va]
+        upright = va == 2  # vertical faces: row 0 at the top and columns running to the viewer's right
+        flip_u = upright and np.cross(-face_normal(face), [0.0, 0.0, 1.0])[ua] < 0
+        su = (-width if flip_u else width) / (hi[ua] - lo[ua])
+        sv = (-height if upright else height) / (hi[va] - lo[va])
+        u0, v0 = (hi[ua] if flip_u else lo[ua]), (hi[va] if upright else lo[va])
         albedo = surface_texture(params.seed, face, _face_kind(face), width, height, res, palette,
                                  params.patch_density, params.texture_noise)
-        cols, rws = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-        points = np.empty((3, height * width))
-        points[axis] = hi[axis] if side else lo[axis]
-        points[ua] = lo[ua] + cols.ravel() / su
-        points[va] = v0 + rws.ravel() / sv
-        light = shading(points, face_normal(face), layout, params).reshape(height, width, 1)
+        light = _face_light(layout, params, face, u0, su, v0, sv, width, height)
         images.append(albedo * light * 255.0)
-        for key, value in zip(rows, (ua, va, lo[ua], v0, su, sv, width - 1, height - 1)):
-            rows[key].append(value)
+        for key, value in zip(keys, (ua, va, su, sv, u0 * su + 0.5, v0 * sv + 0.5, width - 1, height - 1)):
+            table[key].append(value)
     offsets, atlas_h = _pack([(im.shape[1], im.shape[0]) for im in images])
     if atlas_h >= 32767:
-        raise UsvcError(f"texture atlas of {atlas_h} rows exceeds cv2.remap's limit; lower texture_resolution")
+        raise UsvcError(f"texture atlas of {atlas_h} rows exceeds cv2.remap's limit; "
+                        "lower texture_resolution")
     atlas = np.zeros((atlas_h, _ATLAS_WIDTH, 3), dtype=np.float32)
     for (x, y), im in zip(offsets, images):
         atlas[y:y + im.shape[0], x:x + im.shape[1]] = im
-    arrays = {k: np.array(v, dtype=np.int64 if k in ("ua", "va") else np.float64) for k, v in rows.items()}
-    return Atlas(image=atlas, ox=np.array([o[0] for o in offsets], dtype=np.float64),
-                 oy=np.array([o[1] for o in offsets], dtype=np.float64), **arrays)
+    arrays = {k: np.array(v, dtype=np.int8 if k in ("ua", "va") else np.float32) for k, v in table.items()}
+    return Atlas(image=atlas, ox=np.array([o[0] for o in offsets], dtype=np.float32),
+                 oy=np.array([o[1] for o in offsets], dtype=np.float32), **arrays)
