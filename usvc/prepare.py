@@ -59,7 +59,8 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int) -> dict:
             image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
         dst = out_dir / IMAGE_DIR / frame.name
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(dst), image, [cv2.IMWRITE_JPEG_QUALITY, 95]):
+        params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
+        if not cv2.imwrite(str(dst), image, params):
             raise SceneError(f"cannot write image {dst}")
         depth = _read_depth(frame)
         if depth is not None and depth.shape[:2] != (wh, ww):

@@ -125,6 +125,19 @@ def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Recons
     return rec
 
 
+def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int) -> None:
+    """Bring a free reconstruction into the scene's frame (similarity on camera centres)."""
+    centers = np.stack([f.center for f in frames])
+    spread = float(np.median(np.linalg.norm(centers - centers.mean(0), axis=1)))
+    ro = pycolmap.RANSACOptions()
+    ro.max_error = 0.05 * max(spread, 1e-9)
+    ro.random_seed = seed
+    sim = pycolmap.align_reconstruction_to_locations(rec, [f.name for f in frames], centers, 3, ro)
+    if sim is None:
+        raise SfmError("could not align the incremental reconstruction to the given camera centres")
+    rec.transform(sim)
+
+
 def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
                 has_poses: bool) -> tuple[pycolmap.Reconstruction, dict]:
     """Extract, match and triangulate (or map); returns the model and timing/strategy stats."""
@@ -158,6 +171,8 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
         if not models:
             raise SfmError("incremental mapping registered no images: too few matches")
         rec = max(models.values(), key=lambda r: r.num_reg_images())
+        if has_poses:
+            align_to_poses(rec, frames, opts.seed)
     timings["reconstruct_s"] = time.perf_counter() - t0
     if rec.num_points3D() < opts.min_points:
         raise SfmError(
