@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 
 from usvc.errors import KeypointError
-from usvc.tracks import Tracks
+from usvc.tracks import Tracks, write_images_group
 
 
 @dataclass(frozen=True)
@@ -96,9 +96,7 @@ def write_keypoints(path: Path, kp: Keypoints, tracks: Tracks) -> None:
     length = tracks.track_length[kp.index]
     obs_rows = np.concatenate([np.arange(tracks.offset[i], tracks.offset[i + 1]) for i in kp.index])
     with h5py.File(path, "w") as h5:
-        img = h5.create_group("images")
-        img.create_dataset("name", data=np.array(tracks.image_names, dtype=object), dtype=h5py.string_dtype())
-        img["R_world_to_cam"], img["t_world_to_cam"], img["K"] = tracks.R, tracks.t, tracks.K
+        write_images_group(h5, tracks)
         k = h5.create_group("keypoints")
         k["id"] = tracks.point_id[kp.index]
         k["xyz"] = tracks.xyz[kp.index]

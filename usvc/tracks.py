@@ -90,11 +90,16 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
     )
 
 
+def write_images_group(h5: h5py.File, tracks: Tracks) -> None:
+    """The mapping images' names and cameras, shared by every track-derived HDF5."""
+    img = h5.create_group("images")
+    img.create_dataset("name", data=np.array(tracks.image_names, dtype=object), dtype=h5py.string_dtype())
+    img["R_world_to_cam"], img["t_world_to_cam"], img["K"] = tracks.R, tracks.t, tracks.K
+
+
 def write_tracks(path: Path, tracks: Tracks) -> None:
     with h5py.File(path, "w") as h5:
-        img = h5.create_group("images")
-        img.create_dataset("name", data=np.array(tracks.image_names, dtype=object), dtype=h5py.string_dtype())
-        img["R_world_to_cam"], img["t_world_to_cam"], img["K"] = tracks.R, tracks.t, tracks.K
+        write_images_group(h5, tracks)
         pts = h5.create_group("points")
         pts["id"], pts["xyz"], pts["rgb"], pts["error"] = tracks.point_id, tracks.xyz, tracks.rgb, tracks.error
         pts["track_offset"] = tracks.offset
