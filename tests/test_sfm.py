@@ -86,23 +86,45 @@ def test_office_imported_poses_reproject_under_one_pixel(tmp_path):
     assert np.median(np.linalg.norm(uv - again.obs_uv, axis=1)) < 1.0
 
 
-@pytest.mark.slow
-def test_incremental_mapping_on_the_miniature_scene_recovers_the_poses(tmp_path):
-    """Full mapping (no poses used) registers the images; aligned to the truth, centres agree to cm."""
+@pytest.fixture(scope="module")
+def small_mini(tmp_path_factory):
+    """A 24-image miniature scene, prepared."""
     from usvc.synth.params import RoomParams
     from usvc.synth.writer import generate_scene
 
-    small = RoomParams(frames_per_map_sequence=12, n_query_frames=2, supersample=1)
-    generate_scene(tmp_path / "raw", small)
-    prepared = tmp_path / "prepared"
+    root = tmp_path_factory.mktemp("mini")
+    generate_scene(root / "raw", RoomParams(frames_per_map_sequence=12, n_query_frames=2, supersample=1))
+    prepared = root / "prepared"
     prepared.mkdir()
-    prepare_scene(load_scene("ace", tmp_path / "raw", "mini", "given"), prepared, working_width=0)
-    scene = read_scene_h5(prepared)
+    prepare_scene(load_scene("ace", root / "raw", "mini", "given"), prepared, working_width=0)
+    return prepared
+
+
+@pytest.mark.slow
+def test_same_config_gives_identical_tracks(small_mini, tmp_path):
+    frames = read_scene_h5(small_mini).split("train")
+    runs = []
+    for k in range(2):
+        work = tmp_path / str(k)
+        work.mkdir()
+        rec, _ = reconstruct(frames, small_mini / IMAGE_DIR, work, OPTS, has_poses=True)
+        runs.append(from_reconstruction(rec, work / "database.db"))
+    a, b = runs
+    assert len(a.xyz) == len(b.xyz) > 500
+    np.testing.assert_array_equal(a.xyz, b.xyz)
+    np.testing.assert_array_equal(a.obs_uv, b.obs_uv)
+    np.testing.assert_array_equal(a.obs_descriptor, b.obs_descriptor)
+
+
+@pytest.mark.slow
+def test_incremental_mapping_on_the_miniature_scene_recovers_the_poses(small_mini, tmp_path):
+    """Full mapping (no poses used) registers the images; aligned to the truth, centres agree to cm."""
+    scene = read_scene_h5(small_mini)
     frames = scene.split("train")
     work = tmp_path / "work"
     work.mkdir()
     opts = SfmOptions(**{**OPTS.__dict__, "reconstruction": "incremental"})
-    rec, info = reconstruct(frames, prepared / IMAGE_DIR, work, opts, has_poses=True)
+    rec, info = reconstruct(frames, small_mini / IMAGE_DIR, work, opts, has_poses=True)
     assert info["reconstruction"] == "incremental"
     assert rec.num_reg_images() >= 0.9 * len(frames)
     truth = {f.name: f.center for f in frames}

@@ -49,7 +49,9 @@ def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOption
         groups[_camera_key(f)].append(f.name)
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = opts.max_num_features
-    eo.num_threads = opts.num_threads
+    # One thread: COLMAP numbers images in completion order, and the ids decide each pair's
+    # orientation in geometric verification, so parallel extraction makes reruns differ.
+    eo.num_threads = 1
     eo.use_gpu = False
     for (model, _, _, params), names in groups.items():
         ro = pycolmap.ImageReaderOptions()
@@ -91,19 +93,35 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = opts.num_threads
     mo.use_gpu = False
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run
+    common = dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
     if mode == "exhaustive":
-        pycolmap.match_exhaustive(db_path, matching_options=mo, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(db_path, **common)
     elif mode == "sequential":
         po = pycolmap.SequentialPairingOptions()
         po.overlap = opts.sequential_overlap
-        pycolmap.match_sequential(db_path, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(db_path, pairing_options=po, **common)
     else:
         pairs_file = work_dir / "pairs.txt"
         pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pose_pairs(frames, opts.pose_pairs_per_image)))
         po = pycolmap.ImportedPairingOptions()
         po.match_list_path = pairs_file
-        pycolmap.match_image_pairs(db_path, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu)
+        pycolmap.match_image_pairs(db_path, pairing_options=po, **common)
     return mode
+
+
+def _pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
+    """Mapper and triangulator options with every RANSAC seeded, so reruns give the same model."""
+    po = pycolmap.IncrementalPipelineOptions()
+    po.random_seed = opts.seed
+    po.mapper.random_seed = opts.seed
+    po.triangulation.random_seed = opts.seed
+    # Threaded bundle adjustment sums residuals in varying order; the resulting float noise
+    # flips point filtering at thresholds. Triangulation with fixed poses takes seconds anyway.
+    po.num_threads = 1
+    po.mapper.num_threads = 1
+    return po
 
 
 def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
@@ -159,14 +177,13 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
         raise SfmError("sfm.reconstruction=triangulate needs a scene with poses")
     model_dir = work_dir / "colmap_work"
     model_dir.mkdir(exist_ok=True)
+    po = _pipeline_options(opts)
     if mode == "triangulate":
         rec = pycolmap.triangulate_points(
-            _posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, refine_intrinsics=False
+            _posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
+            refine_intrinsics=False,
         )
     else:
-        po = pycolmap.IncrementalPipelineOptions()
-        po.random_seed = opts.seed
-        po.num_threads = opts.num_threads
         models = pycolmap.incremental_mapping(db_path, image_dir, model_dir, options=po)
         if not models:
             raise SfmError("incremental mapping registered no images: too few matches")
