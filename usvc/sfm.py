@@ -42,21 +42,50 @@ def _camera_key(frame: Frame) -> tuple:
     return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
 
 
+def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
+    """Cameras, rigs, frames and images in name order, so image ids (which orient every pair in
+    geometric verification) do not depend on which extraction thread finishes first."""
+    camera_ids: dict[tuple, int] = {}
+    db = pycolmap.Database.open(db_path)
+    try:
+        for k, f in enumerate(sorted(frames, key=lambda f: f.name), start=1):
+            key = _camera_key(f)
+            if key not in camera_ids:
+                cid = len(camera_ids) + 1
+                c = f.camera
+                cam = pycolmap.Camera(model=c.model, width=c.width, height=c.height, params=list(c.params),
+                                      camera_id=cid)
+                cam.has_prior_focal_length = True  # known intrinsics: verify with essential matrices
+                db.write_camera(cam, use_camera_id=True)
+                rig = pycolmap.Rig()
+                rig.rig_id = cid
+                rig.add_ref_sensor(cam.sensor_id)
+                db.write_rig(rig, use_rig_id=True)
+                camera_ids[key] = cid
+            image = pycolmap.Image(name=f.name, camera_id=camera_ids[key], image_id=k)
+            db.write_image(image, use_image_id=True)
+            frame = pycolmap.Frame()
+            frame.frame_id, frame.rig_id = k, camera_ids[key]
+            frame.add_data_id(image.data_id)
+            db.write_frame(frame, use_frame_id=True)
+    finally:
+        db.close()
+    return camera_ids
+
+
 def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions) -> None:
-    """SIFT into a fresh database, one extraction run per distinct camera so intrinsics are exact."""
-    groups: dict[tuple, list[str]] = defaultdict(list)
+    """SIFT into a fresh database whose cameras are the scene's exact intrinsics."""
+    camera_ids = _register_images(frames, db_path)
+    groups: dict[int, list[str]] = defaultdict(list)
     for f in frames:
-        groups[_camera_key(f)].append(f.name)
+        groups[camera_ids[_camera_key(f)]].append(f.name)
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = opts.max_num_features
-    # One thread: COLMAP numbers images in completion order, and the ids decide each pair's
-    # orientation in geometric verification, so parallel extraction makes reruns differ.
-    eo.num_threads = 1
+    eo.num_threads = opts.num_threads
     eo.use_gpu = False
-    for (model, _, _, params), names in groups.items():
+    for cid, names in groups.items():
         ro = pycolmap.ImageReaderOptions()
-        ro.camera_model = model
-        ro.camera_params = ",".join(repr(float(v)) for v in params)
+        ro.existing_camera_id = cid
         pycolmap.extract_features(
             db_path, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
             reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,
