@@ -1,7 +1,7 @@
 """Raw Microsoft 7-Scenes layout.
 
 ``TrainSplit.txt`` / ``TestSplit.txt`` list sequences (``sequence1`` means folder ``seq-01``).
-Each sequence holds ``frame-XXXXXX.color.png``, ``.pose.txt`` (4x4 camera-to-world, metres,
+Each sequence holds ``frame-NNNNNN.color.png``, ``.pose.txt`` (4x4 camera-to-world, metres,
 OpenCV axes) and ``.depth.png`` (16-bit millimetres, 65535 = invalid). The published
 intrinsics are 640x480, focal 525, principal point (320, 240). The raw depth comes from a
 separate, uncalibrated sensor and is not registered to the colour image; stages that need
