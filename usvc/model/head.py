@@ -1,0 +1,242 @@
+"""Per-scene regression head (ACE-style), the encoder+head regressor, and the map file format.
+
+A map file holds only the head (fp16 weights, fp32 scene centre), the identity of the encoder it
+was trained on and free-form metadata, so it stays ~4 MB and cannot be paired with the wrong
+encoder by accident.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from usvc.atomic import atomic_file
+from usvc.model.encoder import Encoder, _first_line, check_state_dict, encoder_fingerprint
+from usvc.model.errors import ModelError
+
+log = logging.getLogger(__name__)
+
+MAX_SCALE = 4.0
+MIN_SCALE = 0.01
+# softplus_beta(0) = ln 2 / beta = 1 - 1 / MAX_SCALE, so o3 = 0 gives h = 1.
+SOFTPLUS_BETA = math.log(2.0) / (1.0 - 1.0 / MAX_SCALE)
+
+MAP_FORMAT = "usvc-map"
+MAP_VERSION = 1
+
+
+def homogeneous_scale(o3: torch.Tensor) -> torch.Tensor:
+    """h = softplus_beta(o3) + 1/MAX_SCALE, at most 1/MIN_SCALE; h lies in (0.25, 100]."""
+    h = F.softplus(o3, beta=SOFTPLUS_BETA) + 1.0 / MAX_SCALE
+    return h.clamp(max=1.0 / MIN_SCALE)
+
+
+def _conv1x1(cin: int, cout: int) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 1, bias=True)
+
+
+class _ResBlock(nn.Module):
+    """Three 1x1 conv+ReLU layers added to the input (via a 1x1 projection if channels differ)."""
+
+    def __init__(self, cin: int, width: int) -> None:
+        super().__init__()
+        self.conv1 = _conv1x1(cin, width)
+        self.conv2 = _conv1x1(width, width)
+        self.conv3 = _conv1x1(width, width)
+        self.skip: nn.Module = nn.Identity() if cin == width else _conv1x1(cin, width)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.conv1(x))
+        y = F.relu(self.conv2(y))
+        y = F.relu(self.conv3(y))
+        return self.skip(x) + y
+
+
+class Head(nn.Module):
+    """Features (B, C, H, W) -> world scene coordinates (B, 3, H, W), always fp32.
+
+    Layout: residual block on the input features, `num_blocks` more residual blocks, two
+    1x1 conv+ReLU layers, a final 1x1 conv to 4 (homogeneous) or 3 outputs, plus the scene centre.
+    When `in_channels != width` (a narrow encoder) the first block's skip is a 1x1 projection,
+    since the input cannot be added to a `width`-channel output otherwise.
+
+    `scene_center` stays fp32 under `.half()`/`.to(dtype)`: in fp16 it would round at ~cm for
+    scenes ~100 m from the origin, and it is added after the output is cast to fp32.
+    """
+
+    def __init__(
+        self,
+        in_channels: int = 512,
+        width: int = 512,
+        num_blocks: int = 1,
+        homogeneous: bool = True,
+    ) -> None:
+        super().__init__()
+        self.in_channels = int(in_channels)
+        self.width = int(width)
+        self.num_blocks = int(num_blocks)
+        self.homogeneous = bool(homogeneous)
+        self.blocks = nn.ModuleList(
+            [_ResBlock(self.in_channels, self.width)]
+            + [_ResBlock(self.width, self.width) for _ in range(self.num_blocks)]
+        )
+        self.fc1 = _conv1x1(self.width, self.width)
+        self.fc2 = _conv1x1(self.width, self.width)
+        self.out = _conv1x1(self.width, 4 if self.homogeneous else 3)
+        self.register_buffer("scene_center", torch.zeros(1, 3, 1, 1, dtype=torch.float32))
+
+    def config(self) -> dict[str, Any]:
+        return {
+            "in_channels": self.in_channels,
+            "width": self.width,
+            "num_blocks": self.num_blocks,
+            "homogeneous": self.homogeneous,
+        }
+
+    def set_scene_center(self, center: Sequence[float] | torch.Tensor) -> None:
+        """Set the offset added to every prediction (ACE: mean mapping camera position)."""
+        c = torch.as_tensor(center, dtype=torch.float64).reshape(1, 3, 1, 1)
+        self.scene_center.copy_(c.to(self.scene_center.device, torch.float32))
+
+    def _apply(self, fn: Callable[[torch.Tensor], torch.Tensor], recurse: bool = True) -> Head:
+        # Let device moves through but keep the centre's fp32 value (taken before any rounding).
+        center = self._buffers["scene_center"]
+        super()._apply(fn, recurse)
+        moved = self._buffers["scene_center"]
+        if center is not None and moved is not None:
+            self._buffers["scene_center"] = center.to(device=moved.device, dtype=torch.float32)
+        return self
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        x = features.to(self.fc1.weight.dtype)
+        for block in self.blocks:
+            x = block(x)
+        x = F.relu(self.fc1(x))
+        x = F.relu(self.fc2(x))
+        o = self.out(x).float()
+        if self.homogeneous:
+            xyz = o[:, :3] / homogeneous_scale(o[:, 3:4])
+        else:
+            xyz = o
+        return xyz + self.scene_center
+
+
+class Regressor(nn.Module):
+    """Normalised luma image (B, 1, H, W) -> scene coordinates (B, 3, ceil(H/8), ceil(W/8))."""
+
+    def __init__(self, encoder: Encoder, head: Head) -> None:
+        super().__init__()
+        if head.in_channels != encoder.out_channels:
+            raise ValueError(
+                f"head expects {head.in_channels} input channels, "
+                f"encoder gives {encoder.out_channels}"
+            )
+        self.encoder = encoder
+        self.head = head
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.head(self.encoder(image))
+
+
+_PLAIN = (str, int, float, bool, type(None))
+
+
+def _check_plain(value: object, where: str) -> None:
+    """Metadata must survive a `weights_only=True` load: plain types and tensors only."""
+    if isinstance(value, _PLAIN) or isinstance(value, torch.Tensor):
+        return
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]")
+        return
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ModelError(f"map metadata key {where}.{key!r} is not a string")
+            _check_plain(item, f"{where}.{key}")
+        return
+    raise ModelError(f"map metadata {where} is a {type(value).__name__}; use plain types")
+
+
+def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]) -> None:
+    """Write the head (fp16 weights, fp32 centre), the encoder's identity and `metadata`."""
+    metadata = dict(metadata)
+    _check_plain(metadata, "metadata")
+    head = regressor.head
+    state = {}
+    for key, tensor in head.state_dict().items():
+        dtype = torch.float32 if key == "scene_center" else torch.float16
+        state[key] = tensor.detach().to("cpu", dtype).clone()
+    payload = {
+        "format": MAP_FORMAT,
+        "version": MAP_VERSION,
+        "head_config": head.config(),
+        "head_state": state,
+        "encoder": {
+            "fingerprint": encoder_fingerprint(regressor.encoder),
+            "width": regressor.encoder.width,
+            "out_channels": regressor.encoder.out_channels,
+        },
+        "metadata": metadata,
+    }
+    with atomic_file(Path(path)) as tmp:
+        torch.save(payload, tmp)
+    log.info("saved map %s", path)
+
+
+def _read_map(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ModelError(f"{path}: map file does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise ModelError(
+            f"{path}: cannot read map, file corrupt or truncated ({_first_line(exc)})"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != MAP_FORMAT:
+        raise ModelError(f"{path}: not a usvc map file")
+    if payload.get("version") != MAP_VERSION:
+        raise ModelError(
+            f"{path}: map format version {payload.get('version')!r}, this code reads {MAP_VERSION}"
+        )
+    for key in ("head_config", "head_state", "encoder", "metadata"):
+        if not isinstance(payload.get(key), dict):
+            raise ModelError(f"{path}: map file has no valid '{key}' entry")
+    return payload
+
+
+def load_head(path: str | Path, encoder_fp: str) -> tuple[Head, dict[str, Any]]:
+    """Read a map's head; refuse it unless its encoder's fingerprint is `encoder_fp`."""
+    path = Path(path)
+    payload = _read_map(path)
+    stored = payload["encoder"].get("fingerprint")
+    if stored != encoder_fp:
+        raise ModelError(
+            f"{path}: map was trained with another encoder (fingerprint {str(stored)[:12]}, "
+            f"this encoder {encoder_fp[:12]}, width {payload['encoder'].get('width')})"
+        )
+    try:
+        head = Head(**payload["head_config"])
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"{path}: invalid head configuration ({_first_line(exc)})") from exc
+    check_state_dict(path, payload["head_state"], head, "map head")
+    head.load_state_dict(payload["head_state"], strict=True)
+    return head, payload["metadata"]
+
+
+def load_map(path: str | Path, encoder: Encoder) -> tuple[Regressor, dict[str, Any]]:
+    """Read a map and pair its head with `encoder`, which must be the one it was trained on."""
+    head, metadata = load_head(path, encoder_fingerprint(encoder))
+    try:
+        regressor = Regressor(encoder, head)
+    except ValueError as exc:
+        raise ModelError(f"{path}: {exc}") from exc
+    log.info("loaded map %s", path)
+    return regressor, metadata

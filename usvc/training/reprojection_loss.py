@@ -1,0 +1,90 @@
+"""ACE's reprojection loss for scene coordinate regression, vectorised over a batch of cells.
+
+Per sample, with X the predicted world point and (u, v) its target pixel (COLMAP convention,
+same as K): p = R X + t in camera coordinates; (u', v') = K p projected after clamping the depth
+to >= ``depth_min``; e = |u' - u| + |v' - v| (L1 pixel error, as ACE uses).
+
+- valid (depth_min <= z <= depth_max and e <= max_reproj): loss = tau * tanh(e / tau), a soft
+  clamp so that outliers, whose error is large, pull with a bounded force;
+- invalid: loss = || p - invalid_depth * K^-1 [u, v, 1]^T ||_1, which pulls points that are
+  behind the camera, too far, or wildly off back to a plausible point on the pixel's ray, where
+  the reprojection term can take over.
+
+The total is the sum over samples divided by N. Everything is computed in at least fp32 with
+autocast disabled, because fp16 depths and pixel errors lose the precision the loss needs.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def reprojection_loss(
+    pred_xyz_world: torch.Tensor,
+    pixels: torch.Tensor,
+    R_w2c: torch.Tensor,
+    t_w2c: torch.Tensor,
+    K: torch.Tensor,
+    K_inv: torch.Tensor,
+    threshold: float | torch.Tensor,
+    depth_min: float = 0.1,
+    depth_max: float = 1000.0,
+    max_reproj: float = 1000.0,
+    invalid_depth: float = 10.0,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Mean loss over N samples and detached statistics.
+
+    Shapes: pred_xyz_world (N, 3), pixels (N, 2), R_w2c (N, 3, 3), t_w2c (N, 3), K and K_inv
+    (N, 3, 3). ``threshold`` is tau in pixels (see ``schedule.circle_threshold``).
+
+    Stats (0-dim detached tensors, so the caller decides when to synchronise): ``valid_fraction``,
+    ``reproj_mean`` and ``reproj_median`` (lower median) of the valid samples' L1 pixel errors
+    (NaN when none is valid).
+    """
+    n = pred_xyz_world.shape[0]
+    if pixels.shape != (n, 2) or R_w2c.shape != (n, 3, 3) or t_w2c.shape != (n, 3):
+        raise ValueError(
+            f"shape mismatch: pred {tuple(pred_xyz_world.shape)}, pixels {tuple(pixels.shape)}, "
+            f"R {tuple(R_w2c.shape)}, t {tuple(t_w2c.shape)}"
+        )
+    if K.shape != (n, 3, 3) or K_inv.shape != (n, 3, 3):
+        raise ValueError(
+            f"K and K_inv must be ({n}, 3, 3), got {tuple(K.shape)}, {tuple(K_inv.shape)}"
+        )
+
+    dtype = torch.promote_types(pred_xyz_world.dtype, torch.float32)
+    with torch.autocast(device_type=pred_xyz_world.device.type, enabled=False):
+        X = pred_xyz_world.to(dtype)
+        uv = pixels.to(dtype)
+        R = R_w2c.to(dtype)
+        t = t_w2c.to(dtype)
+        Kf = K.to(dtype)
+        Kinv = K_inv.to(dtype)
+        tau = threshold.to(dtype) if isinstance(threshold, torch.Tensor) else threshold
+
+        p = torch.einsum("nij,nj->ni", R, X) + t
+        z = p[:, 2]
+        h = torch.einsum("nij,nj->ni", Kf, p)  # h[:, 2] == z: K's last row is [0, 0, 1]
+        proj = h[:, :2] / h[:, 2:3].clamp(min=depth_min)
+        err = (proj - uv).abs().sum(dim=1)
+
+        valid = (z >= depth_min) & (z <= depth_max) & (err <= max_reproj)
+
+        valid_loss = tau * torch.tanh(err / tau)
+        uv1 = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=1)
+        target = invalid_depth * torch.einsum("nij,nj->ni", Kinv, uv1)
+        invalid_loss = (p - target).abs().sum(dim=1)
+
+        per_sample = torch.where(valid, valid_loss, invalid_loss)
+        loss = per_sample.sum() / max(n, 1)
+
+        with torch.no_grad():
+            # Masked reductions rather than boolean indexing: no host synchronisation on GPU.
+            count = valid.sum().to(dtype)
+            nan = torch.full_like(err, float("nan"))
+            stats = {
+                "valid_fraction": count / n if n else count * float("nan"),
+                "reproj_mean": torch.where(valid, err, torch.zeros_like(err)).sum() / count,
+                "reproj_median": torch.where(valid, err, nan).nanmedian(),
+            }
+    return loss, stats
