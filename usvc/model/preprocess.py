@@ -30,8 +30,8 @@ def resize_to_short_side(image: np.ndarray, short_side: int = 480) -> tuple[np.n
     return cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_LINEAR), scale
 
 
-def to_network_input(image: np.ndarray, rgb: bool) -> torch.Tensor:
-    """uint8 HxWx3 (RGB if `rgb`, else BGR) or HxW grey -> (1, 1, H, W) float32, normalised luma."""
+def luma01(image: np.ndarray, rgb: bool) -> np.ndarray:
+    """uint8 HxWx3 (RGB if `rgb`, else BGR) or HxW grey -> HxW float32 luma in [0, 1]."""
     if image.dtype != np.uint8:
         raise ValueError(f"expected a uint8 image, got {image.dtype}")
     if image.ndim == 2:
@@ -42,5 +42,15 @@ def to_network_input(image: np.ndarray, rgb: bool) -> torch.Tensor:
         luma = sum(pixels[..., c] * weights[c] for c in range(3))
     else:
         raise ValueError(f"expected HxW or HxWx3, got shape {image.shape}")
-    normalised = (luma / 255.0 - INPUT_MEAN) / INPUT_STD
+    return (luma / 255.0).astype(np.float32)
+
+
+def normalise(gray01: np.ndarray) -> torch.Tensor:
+    """HxW luma in [0, 1] (possibly augmented) -> (1, 1, H, W) network input."""
+    normalised = (gray01 - INPUT_MEAN) / INPUT_STD
     return torch.from_numpy(np.ascontiguousarray(normalised, dtype=np.float32))[None, None]
+
+
+def to_network_input(image: np.ndarray, rgb: bool) -> torch.Tensor:
+    """uint8 HxWx3 (RGB if `rgb`, else BGR) or HxW grey -> (1, 1, H, W) float32, normalised luma."""
+    return normalise(luma01(image, rgb))

@@ -1,0 +1,149 @@
+"""The training buffer: encoder features of augmented mapping views, sampled per view (ACE-style).
+
+Running the frozen encoder once per augmented view and training the head on shuffled cells of
+all views is what makes ACE mapping fast. Poses and intrinsics are stored once per view and
+referenced by `view_index`, since every cell of a view shares them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from usvc.errors import UsvcError
+from usvc.model.encoder import Encoder, cell_centers
+from usvc.model.preprocess import luma01, normalise
+from usvc.scene import Frame
+from usvc.training.augment import augment
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BufferOptions:
+    size: int
+    samples_per_image: int = 1024
+    short_side: int = 480
+    scale_min: float = 1 / 1.5
+    scale_max: float = 1.5
+    max_rotation_deg: float = 15.0
+    brightness: tuple[float, float] = (0.9, 1.1)
+    contrast: tuple[float, float] = (0.9, 1.1)
+    seed: int = 0
+
+
+@dataclass
+class TrainingBuffer:
+    features: np.ndarray  # (M, C) float16
+    pixels: np.ndarray  # (M, 2) float32, COLMAP coordinates in the augmented view
+    view_index: np.ndarray  # (M,) int32 into the per-view arrays
+    view_image: np.ndarray  # (V,) int32 index of the source mapping image
+    view_R: np.ndarray  # (V, 3, 3) world-to-camera of the augmented view
+    view_t: np.ndarray  # (V, 3)
+    view_K: np.ndarray  # (V, 3, 3)
+    image_names: list[str]
+
+
+def _check_pinhole(frame: Frame) -> None:
+    if frame.camera.has_distortion:
+        raise UsvcError(f"{frame.name}: the training buffer needs undistorted (pinhole) images, "
+                        f"got {frame.camera.model} with distortion")
+    if not frame.has_pose:
+        raise UsvcError(f"{frame.name}: the training buffer needs a posed mapping image")
+
+
+def _load_gray(frame: Frame) -> np.ndarray:
+    image = cv2.imread(str(frame.image_path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise UsvcError(f"cannot read image {frame.image_path}")
+    return luma01(image, rgb=False)
+
+
+def _valid_cells(mask: np.ndarray, h_cells: int, w_cells: int) -> np.ndarray:
+    """Flat indices of cells whose centre pixel lies inside the valid (non-padded) image area."""
+    rows, cols = np.arange(h_cells) * 8 + 4, np.arange(w_cells) * 8 + 4
+    r_ok, c_ok = rows < mask.shape[0], cols < mask.shape[1]
+    inside = np.zeros((h_cells, w_cells), dtype=bool)
+    inside[np.ix_(r_ok, c_ok)] = mask[np.ix_(rows[r_ok], cols[c_ok])]
+    return np.flatnonzero(inside)
+
+
+@torch.inference_mode()
+def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu") -> TrainingBuffer:
+    """Repeated passes over the mapping images with fresh augmentation until `opts.size` cells."""
+    if not frames:
+        raise UsvcError("the training buffer needs at least one mapping image")
+    for f in frames:
+        _check_pinhole(f)
+    rng = np.random.default_rng(opts.seed)
+    encoder = encoder.to(device).eval()
+    feats, pixels, view_idx = [], [], []
+    views: dict[str, list] = {"image": [], "R": [], "t": [], "K": []}
+    count = 0
+    n_views = math.ceil(opts.size / opts.samples_per_image)
+    with tqdm(total=opts.size, desc="buffer", unit="cell") as bar:
+        while count < opts.size:
+            for i in rng.permutation(len(frames)):
+                frame = frames[i]
+                view = augment(_load_gray(frame), frame.camera.K, frame.R, frame.t, rng,
+                               scale_range=(opts.scale_min, opts.scale_max), short_side=opts.short_side,
+                               max_rotation_deg=opts.max_rotation_deg, brightness=opts.brightness,
+                               contrast=opts.contrast)
+                out = encoder(normalise(view.image).to(device))[0]  # (C, h, w)
+                c, h, w = out.shape
+                valid = _valid_cells(view.mask, h, w)
+                if len(valid) == 0:
+                    continue
+                take = min(opts.samples_per_image, opts.size - count)
+                sel = rng.choice(valid, size=take, replace=True)
+                flat = out.reshape(c, -1)[:, torch.from_numpy(sel).to(device)]
+                feats.append(flat.T.to(torch.float16).cpu().numpy())
+                centres = cell_centers(h, w, "colmap").reshape(2, -1)[:, sel].T
+                pixels.append(centres.numpy().astype(np.float32))
+                view_idx.append(np.full(take, len(views["image"]), dtype=np.int32))
+                views["image"].append(i)
+                views["R"].append(view.R_w2c)
+                views["t"].append(view.t_w2c)
+                views["K"].append(view.K)
+                count += take
+                bar.update(take)
+                if count >= opts.size:
+                    break
+    log.info("buffer: %d cells from %d augmented views (planned about %d)", count, len(views["image"]), n_views)
+    return TrainingBuffer(
+        features=np.concatenate(feats), pixels=np.concatenate(pixels), view_index=np.concatenate(view_idx),
+        view_image=np.asarray(views["image"], dtype=np.int32), view_R=np.stack(views["R"]).astype(np.float32),
+        view_t=np.stack(views["t"]).astype(np.float32), view_K=np.stack(views["K"]).astype(np.float32),
+        image_names=[f.name for f in frames],
+    )
+
+
+def write_buffer(path: Path, buf: TrainingBuffer) -> None:
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("features", data=buf.features, chunks=(min(len(buf.features), 4096), buf.features.shape[1]))
+        h5["pixels"], h5["view_index"] = buf.pixels, buf.view_index
+        views = h5.create_group("views")
+        views["image"], views["R_world_to_cam"], views["t_world_to_cam"], views["K"] = (
+            buf.view_image, buf.view_R, buf.view_t, buf.view_K)
+        h5.create_dataset("image_names", data=np.array(buf.image_names, dtype=object), dtype=h5py.string_dtype())
+
+
+def read_buffer(path: Path) -> TrainingBuffer:
+    path = Path(path)
+    if not path.is_file():
+        raise UsvcError(f"training buffer not found: {path}")
+    with h5py.File(path, "r") as h5:
+        return TrainingBuffer(
+            features=h5["features"][()], pixels=h5["pixels"][()], view_index=h5["view_index"][()],
+            view_image=h5["views/image"][()], view_R=h5["views/R_world_to_cam"][()],
+            view_t=h5["views/t_world_to_cam"][()], view_K=h5["views/K"][()],
+            image_names=[n.decode() if isinstance(n, bytes) else n for n in h5["image_names"][()]],
+        )
