@@ -1,0 +1,103 @@
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+
+from usvc.errors import UsvcError
+from usvc.evaluation import BACKENDS, rotation_error_deg, solve_pnp, translation_error
+from usvc.scene import Camera
+
+PINHOLE = Camera("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
+R_TRUE = Rotation.from_euler("xyz", [12.0, -30.0, 75.0], degrees=True).as_matrix()
+T_TRUE = np.array([0.4, -0.3, 1.2])
+
+
+def make_correspondences(camera: Camera, n: int = 400, outlier_ratio: float = 0.5, seed: int = 0):
+    """Noiseless points projected with COLMAP's own camera model (the pixel convention under test)."""
+    rng = np.random.default_rng(seed)
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
+                          params=list(camera.params))
+    x_cam = np.c_[rng.uniform(-0.55, 0.55, (n, 1)), rng.uniform(-0.42, 0.42, (n, 1)), np.ones(n)]
+    x_cam *= rng.uniform(1.0, 4.0, (n, 1))
+    uv = np.asarray(cam.img_from_cam(x_cam), dtype=np.float64)
+    x_world = (x_cam - T_TRUE) @ R_TRUE
+    outlier = rng.permutation(n) < round(outlier_ratio * n)
+    x_world[outlier] = rng.uniform(-3.0, 3.0, (int(outlier.sum()), 3))
+    return uv, x_world, outlier
+
+
+OPENCV = Camera("OPENCV", 640, 480, (500.0, 510.0, 321.0, 239.0, -0.2, 0.05, 1e-3, -2e-3))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("camera", [PINHOLE, OPENCV], ids=["PINHOLE", "OPENCV"])
+def test_recovers_known_pose_with_half_outliers(backend, camera):
+    uv, xw, outlier = make_correspondences(camera)
+    res = solve_pnp(uv, xw, camera, backend=backend)
+    assert res.success
+    assert rotation_error_deg(res.R, R_TRUE) < 1e-3
+    assert translation_error(res.R, res.t, R_TRUE, T_TRUE) < 1e-4
+    np.testing.assert_array_equal(res.inlier_mask, ~outlier)
+    assert res.num_inliers == int((~outlier).sum())
+    assert res.seconds > 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_same_seed_same_pose(backend):
+    uv, xw, _ = make_correspondences(PINHOLE, outlier_ratio=0.6, seed=3)
+    uv = uv + np.random.default_rng(1).normal(0.0, 1.0, uv.shape)  # noise, so runs could differ
+    a = solve_pnp(uv, xw, PINHOLE, seed=7, backend=backend)
+    b = solve_pnp(uv, xw, PINHOLE, seed=7, backend=backend)
+    assert a.success and b.success
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_too_few_inliers_is_failure_not_error(backend):
+    uv, xw, outlier = make_correspondences(PINHOLE, n=200, outlier_ratio=0.9)
+    res = solve_pnp(uv, xw, PINHOLE, min_inliers=50, backend=backend)
+    assert not res.success
+    assert np.isnan(res.R).all() and np.isnan(res.t).all()
+    assert res.inlier_mask.shape == (200,)
+
+
+def test_backends_agree_on_colmap_pixel_convention():
+    # Points come from pycolmap's projection (top-left pixel centre at (0.5, 0.5)); a backend that
+    # shifted only the points or only the principal point would be off by ~0.05 deg here.
+    uv, xw, _ = make_correspondences(PINHOLE, outlier_ratio=0.3, seed=5)
+    a = solve_pnp(uv, xw, PINHOLE, backend="pycolmap")
+    b = solve_pnp(uv, xw, PINHOLE, backend="opencv")
+    assert rotation_error_deg(a.R, b.R) < 1e-6
+    assert translation_error(a.R, a.t, b.R, b.t) < 1e-7
+    shifted = solve_pnp(uv - 0.5, xw, PINHOLE, backend="opencv")
+    assert rotation_error_deg(shifted.R, R_TRUE) > 1e-2
+
+
+def test_nonfinite_points_are_dropped():
+    uv, xw, outlier = make_correspondences(PINHOLE, n=200)
+    uv[0] = np.nan
+    xw[1, 2] = np.inf
+    for backend in BACKENDS:
+        res = solve_pnp(uv, xw, PINHOLE, backend=backend)
+        assert res.success and not res.inlier_mask[0] and not res.inlier_mask[1]
+        assert rotation_error_deg(res.R, R_TRUE) < 1e-3
+
+
+def test_malformed_inputs_raise():
+    uv, xw, _ = make_correspondences(PINHOLE, n=20, outlier_ratio=0.0)
+    with pytest.raises(UsvcError, match="correspondences"):
+        solve_pnp(uv[:10], xw, PINHOLE)
+    with pytest.raises(UsvcError, match="correspondences"):
+        solve_pnp(uv, xw[:, :2], PINHOLE)
+    with pytest.raises(UsvcError, match="at least 4"):
+        solve_pnp(uv[:3], xw[:3], PINHOLE)
+    bad = xw[:5].copy()
+    bad[:2] = np.nan
+    with pytest.raises(UsvcError, match="at least 4"):
+        solve_pnp(uv[:5], bad, PINHOLE)
+    with pytest.raises(UsvcError, match="backend"):
+        solve_pnp(uv, xw, PINHOLE, backend="magic")
