@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from usvc.errors import SceneError
+from usvc.geometry import camera_centers
 
 CAMERA_MODELS: dict[str, int] = {
     "SIMPLE_PINHOLE": 3,
@@ -137,7 +138,7 @@ class Frame:
         """Camera centre in world coordinates."""
         if self.R is None:
             raise SceneError(f"{self.name}: has no pose")
-        return -self.R.T @ self.t
+        return camera_centers(self.R, self.t)
 
 
 @dataclass

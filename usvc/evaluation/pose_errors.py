@@ -13,10 +13,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from usvc.atomic import atomic_file
 from usvc.errors import UsvcError
+from usvc.geometry import camera_centers, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
 # (name, translation threshold in metres, rotation threshold in degrees)
 METRIC_THRESHOLDS: tuple[tuple[str, float, float], ...] = (
@@ -43,13 +43,6 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray | floa
     sin = np.linalg.norm(axis, axis=-1) / 2.0
     angle = np.degrees(np.arctan2(sin, cos))
     return float(angle) if angle.ndim == 0 else angle
-
-
-def camera_centers(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World-space camera centres c = −Rᵀt of world-to-camera poses, (3,) or (N,3)."""
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
-    return -np.einsum("...ji,...j->...i", R, t)
 
 
 def translation_error(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray) -> np.ndarray | float:
@@ -112,13 +105,6 @@ def summarize(
     return out
 
 
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """Unit Hamilton quaternion (w, x, y, z) of R with the canonical sign w ≥ 0."""
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z])
-    return -q if w < 0 else q
-
-
 def write_poses_txt(path: Path | str, names: Sequence[str], R: np.ndarray, t: np.ndarray) -> None:
     """Write world-to-camera poses, one `name qw qx qy qz tx ty tz` line per query."""
     path = Path(path)
@@ -132,7 +118,7 @@ def write_poses_txt(path: Path | str, names: Sequence[str], R: np.ndarray, t: np
             raise UsvcError(f"{path}: query name {name!r} cannot be written on one line")
         if not (np.all(np.isfinite(Ri)) and np.all(np.isfinite(ti))):
             raise UsvcError(f"{path}: pose of {name!r} is not finite")
-        values = np.concatenate([_quat_wxyz(Ri), ti])
+        values = np.concatenate([matrix_to_quat_wxyz(Ri), ti])
         lines.append(" ".join([name, *(repr(float(v)) for v in values)]))
     with atomic_file(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
@@ -164,12 +150,11 @@ def read_poses_txt(path: Path | str) -> dict[str, tuple[np.ndarray, np.ndarray]]
             raise UsvcError(f"{where}: non-numeric pose value in {line!r}") from None
         if not np.all(np.isfinite(values)):
             raise UsvcError(f"{where}: pose of {name!r} is not finite")
-        qw, qx, qy, qz = values[:4]
-        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if norm < 1e-8:
-            raise UsvcError(f"{where}: quaternion of {name!r} has zero norm")
         if name in poses:
             raise UsvcError(f"{where}: duplicate query name {name!r}")
-        R = Rotation.from_quat([qx / norm, qy / norm, qz / norm, qw / norm]).as_matrix()
+        try:
+            R = quat_wxyz_to_matrix(values[:4])
+        except ValueError:
+            raise UsvcError(f"{where}: quaternion of {name!r} has zero norm") from None
         poses[name] = (R, values[4:].copy())
     return poses

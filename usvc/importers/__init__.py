@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from usvc.errors import SceneError
+from usvc.geometry import quat_wxyz_to_matrix
 from usvc.scene import Camera, Frame, Scene, every_nth_split
 
 FORMATS = ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge")
@@ -139,18 +140,10 @@ def c2w_to_w2c(R_c2w: np.ndarray, center: np.ndarray, where: str) -> tuple[np.nd
 
 def quat_wxyz_to_R(q: Iterable[float], where: str) -> np.ndarray:
     """Rotation matrix from a (w, x, y, z) quaternion, normalised (files round to ~6 digits)."""
-    w, x, y, z = (float(v) for v in q)
-    n = np.sqrt(w * w + x * x + y * y + z * z)
-    if not np.isfinite(n) or n < 1e-8:
-        raise SceneError(f"{where}: quaternion ({w}, {x}, {y}, {z}) is not a rotation")
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    try:
+        return quat_wxyz_to_matrix(np.asarray(list(q), dtype=np.float64))
+    except ValueError as e:
+        raise SceneError(f"{where}: {e}") from None
 
 
 def guarded(where: str, build: Callable[[], Any]) -> Any:
