@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from usvc.config import register_configs
 from usvc.errors import UsvcError
-from usvc.stage import is_multirun, job_dir, peak_memory_mb, stage_main, write_json
+from usvc.stage import is_multirun, job_dir, peak_memory_mb, scene_paths, stage_main, write_json
 from usvc.synth.params import RoomParams
 from usvc.synth.writer import generate_scene
 
@@ -26,7 +26,7 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     stats = generate_scene(out, RoomParams(**OmegaConf.to_container(cfg.generate)))
     metrics = {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
-    write_json(job_dir() / "metrics.json" if is_multirun() else Path(cfg.results_dir) / cfg.scene.name / "generate.json", metrics)
+    write_json(job_dir() / "metrics.json" if is_multirun() else scene_paths(cfg).metrics("generate"), metrics)
     log.info("generated %s in %.1f s", out, metrics["seconds"])
 
 

@@ -94,7 +94,9 @@ def keypoint_stats(kp: Keypoints, tracks: Tracks, opts: KeypointOptions) -> dict
 def write_keypoints(path: Path, kp: Keypoints, tracks: Tracks) -> None:
     """Kept points with their observations (image, uv), so later stages need only this file."""
     length = tracks.track_length[kp.index]
-    obs_rows = np.concatenate([np.arange(tracks.offset[i], tracks.offset[i + 1]) for i in kp.index])
+    kept = np.zeros(len(tracks.xyz), dtype=bool)
+    kept[kp.index] = True
+    obs_rows = np.flatnonzero(np.repeat(kept, tracks.track_length))
     with h5py.File(path, "w") as h5:
         write_images_group(h5, tracks)
         k = h5.create_group("keypoints")
