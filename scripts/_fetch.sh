@@ -13,3 +13,9 @@ fetch() {  # fetch URL FILE: download to FILE.part, then rename, so an interrupt
     fi
     mv "$out.part" "$out"
 }
+
+install_dir() {  # install_dir SRC DEST: replace DEST with the finished SRC in one rename
+    rm -rf "$2"
+    mkdir -p "$(dirname "$2")"
+    mv "$1" "$2"
+}

@@ -61,9 +61,7 @@ download_scene() {
     done
     find "$src" -name Thumbs.db -type f -delete
     is_complete "$src" || die "$zip unpacked, but $src lacks split files or sequences"
-    rm -rf "$dest"
-    mkdir -p "$(dirname "$dest")"
-    mv "$src" "$dest"
+    install_dir "$src" "$dest"
     rm -rf "$work"
     echo "7scenes_$scene: ready in $dest"
 }

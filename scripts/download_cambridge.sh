@@ -73,9 +73,7 @@ install_scene() {
     local src="$work/unpacked/$folder"
     [[ -d "$src" ]] || die "$zip does not contain a folder $folder/"
     is_complete "$src" || die "$src lacks dataset_train.txt, dataset_test.txt or reconstruction.nvm"
-    rm -rf "$dest"
-    mkdir -p "$(dirname "$dest")"
-    mv "$src" "$dest"
+    install_dir "$src" "$dest"
     rm -rf "$work"
     echo "cambridge_$short: ready in $dest"
 }
