@@ -26,3 +26,19 @@ class ScenePaths:
 
     def metrics(self, stage: str) -> Path:
         return self.results_dir / self.scene / f"{stage}.json"
+
+    @property
+    def buffer(self) -> Path:
+        return self.data_dir / self.scene / "buffer"
+
+    @property
+    def map(self) -> Path:
+        return self.data_dir / self.scene / "map"
+
+    @property
+    def relocalize(self) -> Path:
+        return self.data_dir / self.scene / "relocalize"
+
+    @property
+    def plots(self) -> Path:
+        return self.results_dir / self.scene / "plots"

@@ -46,7 +46,8 @@ class RoomParams:
 
 
 MIN_ROOM_XY = 2.8  # the camera arcs keep 0.8-1.1 m from the walls
-MIN_ROOM_Z = 2.2  # cameras fly at 1.2-1.65 m, above every free-standing box
+MIN_ROOM_Z = 2.2
+MAX_FACE_TEXELS = 2048  # the texture atlas width (usvc.synth.textures)  # cameras fly at 1.2-1.65 m, above every free-standing box
 
 
 def validate(params: RoomParams) -> None:
@@ -65,6 +66,12 @@ def validate(params: RoomParams) -> None:
         problems.append("object counts must be non-negative")
     if params.texture_resolution < 16 or params.texture_resolution > 1024:
         problems.append(f"texture_resolution must be in [16, 1024], got {params.texture_resolution}")
+    longest = max(params.room_x, params.room_y, params.room_z) * params.texture_resolution
+    if longest > MAX_FACE_TEXELS:
+        problems.append(
+            f"the longest wall needs {longest:.0f} texels (room side x texture_resolution), "
+            f"more than the texture atlas width {MAX_FACE_TEXELS}; lower texture_resolution"
+        )
     if params.n_lights < 1 or params.light_intensity < 0 or params.ambient < 0:
         problems.append("need n_lights >= 1 and non-negative light_intensity and ambient")
     if params.n_map_sequences < 1 or params.frames_per_map_sequence < 2 or params.n_query_frames < 1:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from usvc.errors import UsvcError
-from usvc.synth.params import RoomParams
+from usvc.synth.params import MAX_FACE_TEXELS, RoomParams
 from usvc.synth.room import Layout, face_normal, shading
 
 _FONTS = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
@@ -153,7 +153,7 @@ def surface_texture(seed: int, face: int, kind: str, width: int, height: int, re
 
 
 _TANGENTS = {0: (1, 2), 1: (0, 2), 2: (0, 1)}  # face normal axis -> (u axis, v axis)
-_ATLAS_WIDTH = 2048
+_ATLAS_WIDTH = MAX_FACE_TEXELS
 _LIGHT_STEP = 4  # texels between irradiance samples
 
 

@@ -1,0 +1,138 @@
+"""Encoder pretraining, ACE-style: one shared encoder, one small head per room, many rooms.
+
+Because a head has to regress coordinates of its own room, the shared encoder is pushed to
+produce features that tell places apart, which is what a frozen encoder must give a new scene.
+The corpus has exact depth, so the loss is the Euclidean distance to the true coordinate of
+each cell (faster to converge on a CPU than the reprojection loss; the head stage still trains
+with the reprojection loss). Crops are scale-augmented and aligned to the 8 px cell grid.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from usvc.model.encoder import OUTPUT_STRIDE, Encoder
+from usvc.model.head import Head
+from usvc.model.preprocess import INPUT_MEAN, INPUT_STD
+from usvc.training.pretrain_data import CorpusScene, build_corpus
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PretrainOptions:
+    encoder_width: float = 1.0
+    n_scenes: int = 32
+    first_seed: int = 1000
+    frames_per_scene: int = 40
+    head_width: int = 256
+    iterations: int = 1500
+    batch: int = 8  # crops per iteration, each from a different room
+    crop_h: int = 120
+    crop_w: int = 160
+    scale_min: float = 1 / 1.5
+    scale_max: float = 1.5
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    loss_clamp: float = 2.0  # metres; a cell this wrong pulls no harder
+    seed: int = 0
+    threads: int = 0  # torch CPU threads, 0 = torch's default
+
+
+def _crop(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.Generator
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """(crop luma (h, w), target xyz per cell (h/8, w/8, 3) with NaN where invalid)."""
+    gray = scene.gray[frame]
+    H, W = gray.shape
+    s = rng.uniform(opts.scale_min, opts.scale_max)
+    s = max(s, opts.crop_h / H + 1e-3, opts.crop_w / W + 1e-3)
+    nh, nw = int(round(H * s)), int(round(W * s))
+    image = cv2.resize(gray, (nw, nh), interpolation=cv2.INTER_LINEAR)
+    y0 = int(rng.integers(0, (nh - opts.crop_h) // OUTPUT_STRIDE + 1)) * OUTPUT_STRIDE
+    x0 = int(rng.integers(0, (nw - opts.crop_w) // OUTPUT_STRIDE + 1)) * OUTPUT_STRIDE
+    crop = image[y0:y0 + opts.crop_h, x0:x0 + opts.crop_w]
+    a, b = rng.uniform(0.8, 1.2), rng.uniform(-0.1, 0.1)  # contrast, brightness
+    crop = np.clip((crop - 0.5) * a + 0.5 + b, 0.0, 1.0)
+    hc, wc = opts.crop_h // OUTPUT_STRIDE, opts.crop_w // OUTPUT_STRIDE
+    # Cell centre in the resized image (0-indexed pixel y0 + 8i + 4) -> nearest source pixel.
+    ys = np.rint((y0 + OUTPUT_STRIDE * np.arange(hc) + 4 + 0.5) * (H / nh) - 0.5).astype(int)
+    xs = np.rint((x0 + OUTPUT_STRIDE * np.arange(wc) + 4 + 0.5) * (W / nw) - 0.5).astype(int)
+    target = scene.xyz[frame][np.ix_(np.clip(ys, 0, H - 1), np.clip(xs, 0, W - 1))].astype(np.float32)
+    return crop.astype(np.float32), target
+
+
+def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encoder, dict[str, Any]]:
+    """Train an encoder from scratch on the generated corpus; returns it and its provenance."""
+    if opts.threads > 0:
+        torch.set_num_threads(opts.threads)
+    torch.manual_seed(opts.seed)
+    rng = np.random.default_rng(opts.seed)
+    t0 = time.perf_counter()
+    corpus = build_corpus(opts.n_scenes, opts.first_seed, opts.frames_per_scene)
+    corpus_seconds = time.perf_counter() - t0
+
+    encoder = Encoder(opts.encoder_width).to(device).train()
+    heads = torch.nn.ModuleList()
+    for scene in corpus:
+        head = Head(in_channels=encoder.out_channels, width=opts.head_width, num_blocks=1)
+        head.set_scene_center(scene.center)
+        heads.append(head)
+    heads.to(device).train()
+    params = list(encoder.parameters()) + list(heads.parameters())
+    optim = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations, pct_start=0.1)
+
+    history: list[float] = []
+    batch = min(opts.batch, len(corpus))
+    t1 = time.perf_counter()
+    bar = tqdm(range(opts.iterations), desc="pretrain", unit="it")
+    for it in bar:
+        scene_ids = rng.choice(len(corpus), size=batch, replace=False)
+        crops, targets = [], []
+        for sid in scene_ids:
+            crop, target = _crop(corpus[sid], int(rng.integers(len(corpus[sid].gray))), opts, rng)
+            crops.append(crop)
+            targets.append(target)
+        x = torch.from_numpy((np.stack(crops)[:, None] - INPUT_MEAN) / INPUT_STD).float().to(device)
+        y = torch.from_numpy(np.stack(targets)).permute(0, 3, 1, 2).to(device)  # (B, 3, h, w)
+        feats = encoder(x)
+        pred = torch.cat([heads[int(sid)](feats[b:b + 1]) for b, sid in enumerate(scene_ids)])
+        dist = (pred - y).norm(dim=1)
+        valid = torch.isfinite(dist)
+        loss = dist[valid].clamp(max=opts.loss_clamp).mean()
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        sched.step()
+        history.append(float(loss.detach()))
+        if it % 20 == 0:
+            bar.set_postfix(loss=f"{np.mean(history[-50:]):.3f}")
+        if it % 100 == 0:
+            log.info("pretrain it %d/%d loss %.4f (mean of last 100: %.4f)", it, opts.iterations,
+                     history[-1], float(np.mean(history[-100:])))
+    train_seconds = time.perf_counter() - t1
+    encoder.eval().requires_grad_(False)
+    window = max(1, min(100, len(history)))
+    provenance = {
+        "options": asdict(opts),
+        "corpus": {"rooms": len(corpus), "frames": int(sum(len(s.gray) for s in corpus)),
+                   "room_seeds": [int(s.seed) for s in corpus], "generator": "usvc.training.pretrain_data"},
+        "loss_first_100": float(np.mean(history[:window])),
+        "loss_last_100": float(np.mean(history[-window:])),
+        "loss_curve": [float(np.mean(history[i:i + 50])) for i in range(0, len(history), 50)],
+        "corpus_seconds": round(corpus_seconds, 1),
+        "train_seconds": round(train_seconds, 1),
+        "device": device,
+        "torch": torch.__version__,
+    }
+    log.info("pretrained encoder width %g: loss %.3f -> %.3f m in %.0f s", opts.encoder_width,
+             provenance["loss_first_100"], provenance["loss_last_100"], train_seconds)
+    return encoder, provenance
