@@ -42,11 +42,23 @@ def repo(tmp_path_factory) -> Path:
         if src.is_file():
             (dst / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, dst / rel)
+    # The whole pipeline runs, with mapping cut to a few seconds: this test is about caching and
+    # wiring; accuracy on the miniature scene is measured by `.ci/run`'s own `dvc repro`.
+    _set(dst / "conf/config.yaml", "  - model: default", "  - model: small")
+    _set(dst / "conf/buffer/default.yaml", "size: 262144", "size: 16384")
+    _set(dst / "conf/train/default.yaml", "iterations: 2000", "iterations: 20")
+    _set(dst / "conf/train/default.yaml", "batch_size: 5120", "batch_size: 1024")
     _run(["git", "init", "-q"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "add", "-A"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "commit", "-qm", "copy"], dst)
     _run([sys.executable, "-m", "dvc", "repro"], dst)
     return dst
+
+
+def _set(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert old in text, f"{path} has no line {old!r}"
+    path.write_text(text.replace(old, new))
 
 
 def _status(repo: Path) -> set[str]:
@@ -57,10 +69,30 @@ def _status(repo: Path) -> set[str]:
 def test_repro_produces_every_artifact(repo):
     for rel in ["data/raw/mini/train/rgb", "data/mini/prepared/scene.h5", "data/mini/sfm/tracks.h5",
                 "data/mini/sfm/points.ply", "data/mini/sfm/model/points3D.bin",
-                "data/mini/keypoints/keypoints.h5", "data/mini/keypoints/keypoints.ply"]:
+                "data/mini/keypoints/keypoints.h5", "data/mini/keypoints/keypoints.ply",
+                "data/mini/buffer/buffer.h5", "data/mini/map/map.pt", "data/mini/relocalize/poses.txt",
+                "data/mini/relocalize/queries.h5", "results/mini/metrics.json",
+                "results/mini/plots/trajectory.png", "results/mini/plots/trans_cdf.csv"]:
         assert (repo / rel).exists(), rel
     sfm = json.loads((repo / "results/mini/sfm.json").read_text())
     assert sfm["points"] > 500 and sfm["median_reprojection_error_px"] < 1.0
+    metrics = json.loads((repo / "results/mini/metrics.json").read_text())
+    assert metrics["n_queries"] == 20 and 0.0 <= metrics["acc_5cm_5deg"] <= 1.0
+    shown = _run([sys.executable, "-m", "dvc", "metrics", "show"], repo).stdout
+    assert "acc_5cm_5deg" in shown and "median_rot_deg" in shown
+    assert _status(repo) == set()
+
+
+def test_relocalize_change_reruns_only_relocalize_and_metrics(repo):
+    conf = repo / "conf/relocalize/default.yaml"
+    map_digest = _digest(repo / "data/mini/map/map.pt")
+    conf.write_text(conf.read_text().replace("max_error_px: 10.0", "max_error_px: 8.0"))
+    assert _status(repo) == {"relocalize@mini", "metrics@mini"}
+    out = _run([sys.executable, "-m", "dvc", "repro"], repo).stdout
+    assert "Running stage 'relocalize@mini'" in out and "Running stage 'metrics@mini'" in out
+    for stage in ("buffer@mini", "train@mini", "sfm@mini"):
+        assert f"Running stage '{stage}'" not in out
+    assert _digest(repo / "data/mini/map/map.pt") == map_digest
     assert _status(repo) == set()
 
 

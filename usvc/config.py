@@ -54,6 +54,53 @@ class KeypointsConfig:
 
 
 @dataclass
+class ModelConfig:
+    name: str = "default"
+    encoder_width: float = 1.0  # channel multiplier; 0.5 is model=small
+    encoder_weights: Optional[str] = None  # null = the encoder shipped for this width (usvc/weights)
+    head_width: int = 512
+    head_blocks: int = 1
+
+
+@dataclass
+class BufferConfig:
+    size: int = 262144  # cells
+    samples_per_image: int = 1024
+    short_side: int = 0  # working short side the map is trained and queried at; 0 = the prepared images'
+    scale_min: float = 0.6667
+    scale_max: float = 1.5
+    max_rotation_deg: float = 15.0
+    brightness_min: float = 0.9
+    brightness_max: float = 1.1
+    contrast_min: float = 0.9
+    contrast_max: float = 1.1
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 2000
+    batch_size: int = 5120
+    optimizer: str = "adamw"  # adamw | adabelief
+    lr: float = 5e-3
+    schedule: str = "one_cycle"  # one_cycle | constant
+    warmup_fraction: float = 0.3
+    weight_decay: float = 0.01
+    threshold_start: float = 50.0
+    threshold_end: float = 1.0
+    depth_min_rel: float = 0.05  # depth bounds in units of the scene's median depth
+    depth_max_rel: float = 500.0
+    invalid_depth_rel: float = 5.0
+    max_reproj_px: float = 1000.0
+
+
+@dataclass
+class RelocalizeConfig:
+    backend: str = "opencv"  # opencv | pycolmap
+    max_error_px: float = 10.0
+    min_inliers: int = 10
+
+
+@dataclass
 class Config:
     seed: int = 0
     data_dir: str = "data"
@@ -62,6 +109,10 @@ class Config:
     generate: RoomParams = field(default_factory=RoomParams)
     sfm: SfmConfig = field(default_factory=SfmConfig)
     keypoints: KeypointsConfig = field(default_factory=KeypointsConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    buffer: BufferConfig = field(default_factory=BufferConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    relocalize: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 
 
 _CHOICES: dict[str, tuple[str, ...]] = {
@@ -70,11 +121,17 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "sfm.matching": ("auto", "exhaustive", "sequential", "poses"),
     "sfm.reconstruction": ("auto", "triangulate", "incremental"),
     "keypoints.weights": ("uniform", "reprojection"),
+    "train.optimizer": ("adamw", "adabelief"),
+    "train.schedule": ("one_cycle", "constant"),
+    "relocalize.backend": ("opencv", "pycolmap"),
 }
 _POSITIVE: tuple[str, ...] = (
     "scene.split_n", "sfm.max_num_features", "sfm.exhaustive_max_images", "sfm.sequential_overlap",
     "sfm.pose_pairs_per_image", "keypoints.sigma", "keypoints.reprojection_scale_px",
     "keypoints.min_track_length",
+    "model.encoder_width", "model.head_width", "buffer.size", "buffer.samples_per_image", "buffer.scale_min",
+    "buffer.scale_max", "buffer.brightness_min", "buffer.contrast_min", "train.iterations", "train.batch_size",
+    "train.lr", "train.depth_min_rel", "relocalize.max_error_px", "relocalize.min_inliers",
 )
 
 
@@ -98,6 +155,14 @@ def validate(cfg: Any) -> None:
         raise ConfigError(f"config key keypoints.tau={cfg.keypoints.tau!r} must be >= 0")
     if cfg.scene.working_width < 0:
         raise ConfigError(f"config key scene.working_width={cfg.scene.working_width!r} must be >= 0 (0 keeps the size)")
+    for lo, hi in (("buffer.scale_min", "buffer.scale_max"), ("buffer.brightness_min", "buffer.brightness_max"),
+                   ("buffer.contrast_min", "buffer.contrast_max")):
+        if _get(cfg, lo) > _get(cfg, hi):
+            raise ConfigError(f"config key {lo}={_get(cfg, lo)!r} exceeds {hi}={_get(cfg, hi)!r}")
+    if not 0 <= cfg.train.warmup_fraction < 1:
+        raise ConfigError(f"config key train.warmup_fraction={cfg.train.warmup_fraction!r} must be in [0, 1)")
+    if cfg.buffer.short_side < 0 or cfg.model.head_blocks < 0:
+        raise ConfigError("config keys buffer.short_side and model.head_blocks must be >= 0")
     if cfg.scene.metric_scale is not None and not cfg.scene.metric_scale > 0:
         raise ConfigError(f"config key scene.metric_scale={cfg.scene.metric_scale!r} must be > 0 or null")
 
@@ -110,6 +175,10 @@ def register_configs() -> None:
     cs.store(group="generate", name="base_generate", node=RoomParams)
     cs.store(group="sfm", name="base_sfm", node=SfmConfig)
     cs.store(group="keypoints", name="base_keypoints", node=KeypointsConfig)
+    cs.store(group="model", name="base_model", node=ModelConfig)
+    cs.store(group="buffer", name="base_buffer", node=BufferConfig)
+    cs.store(group="train", name="base_train", node=TrainConfig)
+    cs.store(group="relocalize", name="base_relocalize", node=RelocalizeConfig)
 
 
 GROUP_SCHEMAS: dict[str, type] = {
@@ -117,6 +186,10 @@ GROUP_SCHEMAS: dict[str, type] = {
     "generate": RoomParams,
     "sfm": SfmConfig,
     "keypoints": KeypointsConfig,
+    "model": ModelConfig,
+    "buffer": BufferConfig,
+    "train": TrainConfig,
+    "relocalize": RelocalizeConfig,
 }
 
 

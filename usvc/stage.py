@@ -56,12 +56,16 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
     return wrapper
 
 
-def stage_outputs(cfg: DictConfig, stage: str) -> tuple[Path, Path]:
-    """(artifact dir, metrics file): the DVC-tracked paths, or this job's own under --multirun."""
+def stage_outputs(cfg: DictConfig, stage: str, artifact: str | None = None) -> tuple[Path, Path]:
+    """(artifact dir, metrics file): the DVC-tracked paths, or this job's own under --multirun.
+
+    `artifact` names the ScenePaths directory when it differs from the stage (train -> map).
+    """
+    name = artifact or stage
     if is_multirun():
-        return job_dir() / stage, job_dir() / "metrics.json"
+        return job_dir() / name, job_dir() / "metrics.json"
     paths = scene_paths(cfg)
-    return getattr(paths, stage), paths.metrics(stage)
+    return getattr(paths, name), paths.metrics(stage)
 
 
 def peak_memory_mb() -> float:

@@ -42,6 +42,10 @@ def _conv1x1(cin: int, cout: int) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, 1, bias=True)
 
 
+def _linear(conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    return F.linear(x, conv.weight[:, :, 0, 0], conv.bias)
+
+
 class _ResBlock(nn.Module):
     """Three 1x1 conv+ReLU layers added to the input (via a 1x1 projection if channels differ)."""
 
@@ -113,6 +117,24 @@ class Head(nn.Module):
         if center is not None and moved is not None:
             self._buffers["scene_center"] = center.to(device=moved.device, dtype=torch.float32)
         return self
+
+    def forward_flat(self, features: torch.Tensor) -> torch.Tensor:
+        """(N, C) features -> (N, 3) coordinates; the same weights as `forward`, run as matmuls.
+
+        Training batches are cells gathered from many images, so there is no image grid, and
+        on CPU a matmul is ~2x faster than a 1x1 convolution over an (N, C, 1, 1) tensor.
+        """
+        x = features.to(self.fc1.weight.dtype)
+        for block in self.blocks:
+            y = F.relu(_linear(block.conv1, x))
+            y = F.relu(_linear(block.conv2, y))
+            y = F.relu(_linear(block.conv3, y))
+            x = (x if isinstance(block.skip, nn.Identity) else _linear(block.skip, x)) + y
+        x = F.relu(_linear(self.fc1, x))
+        x = F.relu(_linear(self.fc2, x))
+        o = _linear(self.out, x).float()
+        xyz = o[:, :3] / homogeneous_scale(o[:, 3:4]) if self.homogeneous else o
+        return xyz + self.scene_center.reshape(1, 3)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         x = features.to(self.fc1.weight.dtype)
@@ -191,7 +213,9 @@ def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]
     log.info("saved map %s", path)
 
 
-def _read_map(path: Path) -> dict[str, Any]:
+def read_map_header(path: str | Path) -> dict[str, Any]:
+    """The validated map payload, without building the head (to learn which encoder it needs)."""
+    path = Path(path)
     if not path.is_file():
         raise ModelError(f"{path}: map file does not exist")
     try:
@@ -215,7 +239,7 @@ def _read_map(path: Path) -> dict[str, Any]:
 def load_head(path: str | Path, encoder_fp: str) -> tuple[Head, dict[str, Any]]:
     """Read a map's head; refuse it unless its encoder's fingerprint is `encoder_fp`."""
     path = Path(path)
-    payload = _read_map(path)
+    payload = read_map_header(path)
     stored = payload["encoder"].get("fingerprint")
     if stored != encoder_fp:
         raise ModelError(

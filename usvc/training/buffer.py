@@ -126,14 +126,21 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
     )
 
 
-def write_buffer(path: Path, buf: TrainingBuffer) -> None:
+def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) -> None:
+    """Write the buffer; `attrs` (e.g. the working short side) travel with it to the map."""
     with h5py.File(path, "w") as h5:
+        h5.attrs.update(attrs)
         h5.create_dataset("features", data=buf.features, chunks=(min(len(buf.features), 4096), buf.features.shape[1]))
         h5["pixels"], h5["view_index"] = buf.pixels, buf.view_index
         views = h5.create_group("views")
         views["image"], views["R_world_to_cam"], views["t_world_to_cam"], views["K"] = (
             buf.view_image, buf.view_R, buf.view_t, buf.view_K)
         h5.create_dataset("image_names", data=np.array(buf.image_names, dtype=object), dtype=h5py.string_dtype())
+
+
+def read_buffer_attrs(path: Path) -> dict:
+    with h5py.File(path, "r") as h5:
+        return {k: (v.item() if hasattr(v, "item") else v) for k, v in h5.attrs.items()}
 
 
 def read_buffer(path: Path) -> TrainingBuffer:

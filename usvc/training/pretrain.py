@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from usvc.errors import UsvcError
 from usvc.model.encoder import OUTPUT_STRIDE, Encoder
 from usvc.model.head import Head
 from usvc.model.preprocess import INPUT_MEAN, INPUT_STD
@@ -45,6 +46,11 @@ class PretrainOptions:
     loss_clamp: float = 2.0  # metres; a cell this wrong pulls no harder
     seed: int = 0
     threads: int = 0  # torch CPU threads, 0 = torch's default
+    objective: str = "regression"  # regression (one head per room) | contrastive (cell matching)
+    pair_max_gap: int = 3  # contrastive: the second view is at most this many frames away
+    positive_radius: float = 0.05  # contrastive: cells whose surface points are this close match (m)
+    negative_radius: float = 0.3  # contrastive: cells nearer than this (but not the match) are ignored
+    temperature: float = 0.07
 
 
 def _crop(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.Generator
@@ -69,6 +75,55 @@ def _crop(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.
     return crop.astype(np.float32), target
 
 
+def contrastive_loss(fa: torch.Tensor, fb: torch.Tensor, xa: torch.Tensor, xb: torch.Tensor,
+                     opts: PretrainOptions) -> torch.Tensor:
+    """InfoNCE between cells of two views of one room: a cell's positive is the cell of the other
+    view whose surface point is nearest (within `positive_radius`); cells of the other view
+    farther than `negative_radius` are its negatives. No head and no room memorised: this asks
+    the encoder directly for what a frozen SCR encoder must give, distinctive and
+    viewpoint-stable local features."""
+    fa = torch.nn.functional.normalize(fa.flatten(1).T, dim=1)  # (Na, C)
+    fb = torch.nn.functional.normalize(fb.flatten(1).T, dim=1)
+    xa, xb = xa.reshape(-1, 3), xb.reshape(-1, 3)
+    ok_a, ok_b = torch.isfinite(xa).all(1), torch.isfinite(xb).all(1)
+    dist = torch.cdist(torch.nan_to_num(xa, 1e6), torch.nan_to_num(xb, -1e6))
+    dist[:, ~ok_b] = float("inf")
+    nearest, match = dist.min(dim=1)
+    anchor = ok_a & (nearest < opts.positive_radius)
+    if int(anchor.sum()) == 0:
+        return fa.sum() * 0.0
+    logits = fa[anchor] @ fb.T / opts.temperature
+    ignore = (dist[anchor] < opts.negative_radius) | ~ok_b[None, :]
+    ignore[torch.arange(len(logits)), match[anchor]] = False
+    logits = logits.masked_fill(ignore, float("-inf"))
+    return torch.nn.functional.cross_entropy(logits, match[anchor])
+
+
+def _pair_frames(scene: CorpusScene, opts: PretrainOptions, rng: np.random.Generator) -> tuple[int, int]:
+    """Two nearby frames of one mapping sequence (the corpus has two sequences of equal length)."""
+    seq_len = max(1, len(scene.gray) // 2)
+    a = int(rng.integers(len(scene.gray)))
+    lo, hi = (a // seq_len) * seq_len, min(len(scene.gray), (a // seq_len + 1) * seq_len)
+    b = int(np.clip(a + rng.integers(-opts.pair_max_gap, opts.pair_max_gap + 1), lo, hi - 1))
+    return a, b
+
+
+def _contrastive_batch(corpus: list[CorpusScene], opts: PretrainOptions, rng: np.random.Generator,
+                       encoder: Encoder, device: str) -> torch.Tensor:
+    crops, targets = [], []
+    for _ in range(max(1, opts.batch // 2)):
+        scene = corpus[int(rng.integers(len(corpus)))]
+        for frame in _pair_frames(scene, opts, rng):
+            crop, target = _crop(scene, frame, opts, rng)
+            crops.append(crop)
+            targets.append(target)
+    x = torch.from_numpy((np.stack(crops)[:, None] - INPUT_MEAN) / INPUT_STD).float().to(device)
+    y = torch.from_numpy(np.stack(targets)).to(device)  # (B, h, w, 3)
+    feats = encoder(x)
+    losses = [contrastive_loss(feats[k], feats[k + 1], y[k], y[k + 1], opts) for k in range(0, len(crops), 2)]
+    return torch.stack(losses).mean()
+
+
 def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encoder, dict[str, Any]]:
     """Train an encoder from scratch on the generated corpus; returns it and its provenance."""
     if opts.threads > 0:
@@ -79,9 +134,11 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
     corpus = build_corpus(opts.n_scenes, opts.first_seed, opts.frames_per_scene)
     corpus_seconds = time.perf_counter() - t0
 
+    if opts.objective not in ("regression", "contrastive"):
+        raise UsvcError(f"pretrain objective must be 'regression' or 'contrastive', got {opts.objective!r}")
     encoder = Encoder(opts.encoder_width).to(device).train()
     heads = torch.nn.ModuleList()
-    for scene in corpus:
+    for scene in (corpus if opts.objective == "regression" else []):
         head = Head(in_channels=encoder.out_channels, width=opts.head_width, num_blocks=1)
         head.set_scene_center(scene.center)
         heads.append(head)
@@ -95,6 +152,17 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
     t1 = time.perf_counter()
     bar = tqdm(range(opts.iterations), desc="pretrain", unit="it")
     for it in bar:
+        if opts.objective == "contrastive":
+            loss = _contrastive_batch(corpus, opts, rng, encoder, device)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            sched.step()
+            history.append(float(loss.detach()))
+            if it % 100 == 0:
+                log.info("pretrain it %d/%d loss %.4f (mean of last 100: %.4f)", it, opts.iterations,
+                         history[-1], float(np.mean(history[-100:])))
+            continue
         scene_ids = rng.choice(len(corpus), size=batch, replace=False)
         crops, targets = [], []
         for sid in scene_ids:

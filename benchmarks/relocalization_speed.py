@@ -1,0 +1,160 @@
+"""Time one relocalization query, split into encoder forward, head and RANSAC-PnP, per model and size.
+
+Both models use the encoder weights shipped in usvc/weights when they exist, else random ones
+(speed does not depend on the values; the table says which). The head has the configured
+layout (width 512, one extra block). PnP runs through `solve_pnp` on what a good map would give:
+the cell centres of a PINHOLE camera (f = 0.82 x width) looking at a tilted plane 1.5-3 m away,
+1 cm 3D noise, 30 % of the cells replaced by points drawn from the box of the others. Each number
+is the median over --runs queries after --warmup untimed ones; "total" is the median of the
+per-query sums, so it need not equal the sum of the medians. GFLOP/s is the encoder's only
+(`encoder_flops` over its median time). Run:
+python benchmarks/relocalization_speed.py [--runs 20] [--device cuda] [--sizes 320x240 640x480]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from usvc.errors import UsvcError  # noqa: E402
+from usvc.evaluation import rotation_error_deg, solve_pnp  # noqa: E402
+from usvc.model.encoder import (  # noqa: E402
+    Encoder,
+    cell_centers,
+    encoder_flops,
+    feature_size,
+    load_encoder_weights,
+)
+from usvc.model.head import Head  # noqa: E402
+from usvc.model.preprocess import normalise  # noqa: E402
+from usvc.scene import Camera  # noqa: E402
+from usvc.weights import shipped_encoder_path  # noqa: E402
+
+MODELS = {"default": 1.0, "small": 0.5}
+HEAD_WIDTH, HEAD_BLOCKS = 512, 1  # conf/model/*.yaml
+OUTLIER_RATIO = 0.3
+POINT_NOISE_M = 0.01
+
+
+def ace_median(values: list[float]) -> float:
+    """Element ⌊N/2⌋ of the sorted list, the median rule the evaluation uses."""
+    return float(np.sort(values)[len(values) // 2])
+
+
+def load_encoder(width: float) -> tuple[Encoder, str]:
+    """The shipped encoder of this width, or a random one when it has not been built yet."""
+    try:
+        return load_encoder_weights(shipped_encoder_path(width), width=width), "shipped"
+    except UsvcError:
+        torch.manual_seed(0)
+        return Encoder(width).eval().requires_grad_(False), "random"
+
+
+def plane_scene(h_cells: int, w_cells: int, camera: Camera, rng: np.random.Generator
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cell-centre pixels, their world points (30 % outliers) and the true world-to-camera R, t."""
+    uv = cell_centers(h_cells, w_cells, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+    rays = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], -1)
+    normal = np.array([0.3, -0.2, 1.0])  # plane normal . X = 2 in the camera frame: 1.5-3 m deep
+    x_cam = rays * (2.0 / (rays @ normal))[:, None]
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = -R @ rng.uniform(-5.0, 5.0, 3)
+    x_world = (x_cam - t) @ R + rng.normal(0.0, POINT_NOISE_M, x_cam.shape)
+    outlier = rng.permutation(len(uv)) < round(OUTLIER_RATIO * len(uv))
+    lo, hi = x_world[~outlier].min(0), x_world[~outlier].max(0)
+    x_world[outlier] = rng.uniform(lo, hi, (int(outlier.sum()), 3))
+    return uv, x_world, R, t
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+@torch.inference_mode()
+def time_queries(encoder: Encoder, head: Head, width: int, height: int, runs: int, warmup: int,
+                 device: torch.device) -> dict[str, float]:
+    """Median ms of each stage over `runs` queries, plus how many PnP solves found the true pose."""
+    rng = np.random.default_rng(0)
+    image = normalise(rng.random((height, width), dtype=np.float32)).to(device)
+    camera = Camera("PINHOLE", width, height, (0.82 * width, 0.82 * width, width / 2, height / 2))
+    uv, xyz, R_true, _ = plane_scene(*feature_size(height, width), camera, rng)
+    times: dict[str, list[float]] = {"encoder": [], "head": [], "pnp": [], "total": []}
+    solved = 0
+    for k in range(warmup + runs):
+        sync(device)
+        t0 = time.perf_counter()
+        features = encoder(image)
+        sync(device)
+        t1 = time.perf_counter()
+        coords = head(features)[0].permute(1, 2, 0).double().cpu().numpy()  # as Relocalizer does
+        t2 = time.perf_counter()
+        # The network output is garbage for random weights; PnP gets the synthetic plane instead.
+        assert coords.shape[:2] == feature_size(height, width)
+        result = solve_pnp(uv, xyz, camera, max_error_px=10.0, seed=k)
+        t3 = time.perf_counter()
+        if k < warmup:
+            continue
+        solved += bool(result.success and rotation_error_deg(result.R, R_true) < 1.0)
+        for key, seconds in zip(times, (t1 - t0, t2 - t1, t3 - t2, t3 - t0)):
+            times[key].append(seconds * 1e3)
+    return {**{key: ace_median(v) for key, v in times.items()}, "solved": solved}
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, e.g. 640x480, got {text!r}") from None
+    return w, h
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (falls back to cpu if unavailable)")
+    ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(320, 240), (640, 480)],
+                    metavar="WxH")
+    args = ap.parse_args()
+    if args.runs < 1:
+        ap.error("--runs must be at least 1")
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print(f"note: --device {args.device} requested but CUDA is not available; using cpu")
+        device = torch.device("cpu")
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    print(f"device {device} ({name}), torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}; "
+          f"median of {args.runs} runs after {args.warmup} warm-up; PnP: opencv, "
+          f"{OUTLIER_RATIO:.0%} outliers")
+    header = (f"{'model':<8} {'weights':<8} {'size':>8} {'encoder ms':>10} {'head ms':>8} {'pnp ms':>8} "
+              f"{'total ms':>9} {'GFLOP':>6} {'GFLOP/s':>8} {'pnp ok':>7}")
+    print(header)
+    print("-" * len(header))
+    for model, width in MODELS.items():
+        encoder, source = load_encoder(width)
+        head = Head(encoder.out_channels, HEAD_WIDTH, HEAD_BLOCKS).eval().requires_grad_(False)
+        encoder.to(device)
+        head.to(device)
+        for w, h in args.sizes:
+            r = time_queries(encoder, head, w, h, args.runs, args.warmup, device)
+            gflop = encoder_flops(h, w, width) / 1e9
+            solved = f"{int(r['solved'])}/{args.runs}"
+            print(f"{model:<8} {source:<8} {f'{w}x{h}':>8} {r['encoder']:>10.1f} {r['head']:>8.1f} "
+                  f"{r['pnp']:>8.1f} {r['total']:>9.1f} {gflop:>6.1f} {gflop / r['encoder'] * 1e3:>8.1f} "
+                  f"{solved:>7}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""Stage: encoder features of augmented mapping views, sampled per view, into buffer.h5."""
+
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig
+
+from usvc.atomic import atomic_dir
+from usvc.config import register_configs
+from usvc.model.encoder import load_encoder_weights
+from usvc.scene_io import read_scene_h5
+from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.training.buffer import BufferOptions, fill_buffer, write_buffer
+from usvc.weights import encoder_weights_path
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    t0 = time.perf_counter()
+    frames = read_scene_h5(scene_paths(cfg).prepared).split("train")
+    weights = encoder_weights_path(cfg.model.encoder_width, cfg.model.encoder_weights)
+    encoder = load_encoder_weights(weights, width=cfg.model.encoder_width)
+    b = cfg.buffer
+    short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
+    opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,
+                         scale_min=b.scale_min, scale_max=b.scale_max, max_rotation_deg=b.max_rotation_deg,
+                         brightness=(b.brightness_min, b.brightness_max), contrast=(b.contrast_min, b.contrast_max),
+                         seed=cfg.seed)
+    buf = fill_buffer(frames, encoder, opts)
+    out, metrics_path = stage_outputs(cfg, "buffer")
+    with atomic_dir(out) as tmp:
+        write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name)
+        megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
+    stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames),
+             "short_side": short_side, "feature_dim": int(buf.features.shape[1]), "megabytes": megabytes,
+             "encoder": weights.name, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
+    write_json(metrics_path, stats)
+    log.info("buffer %s: %d cells from %d views in %.1f s", cfg.scene.name, stats["cells"], stats["views"],
+             stats["seconds"])
+
+
+if __name__ == "__main__":
+    main()

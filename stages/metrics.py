@@ -1,0 +1,45 @@
+"""Stage: score the relocalized query poses against ground truth; write metrics.json and plots."""
+
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig
+
+from usvc.atomic import atomic_dir
+from usvc.config import register_configs
+from usvc.evaluation import read_poses_txt
+from usvc.evaluation.evaluate import PER_QUERY_COLUMNS, evaluate_poses, read_query_stats
+from usvc.evaluation.median_depth import median_scene_depth
+from usvc.evaluation.plots import write_plots
+from usvc.scene_io import read_scene_h5
+from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.tracks import read_tracks
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    t0 = time.perf_counter()
+    paths = scene_paths(cfg)
+    scene = read_scene_h5(paths.prepared)
+    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    estimates = read_poses_txt(paths.relocalize / "poses.txt")
+    stats = read_query_stats(paths.relocalize / "queries.h5")
+    summary, rows = evaluate_poses(scene, estimates, stats, median_depth)
+
+    plots_dir, metrics_path = stage_outputs(cfg, "metrics", artifact="plots")
+    with atomic_dir(plots_dir) as tmp:
+        write_plots(tmp, rows, PER_QUERY_COLUMNS, scene.metric_scale, median_depth, f"{scene.name}: relocalization")
+    write_json(metrics_path, {**summary, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+    headline = "acc_5cm_5deg" if scene.metric_scale is not None else "acc_5deg_3pct"
+    log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg",
+             scene.name, headline, summary[headline], summary["n_queries"], summary["n_failed"],
+             summary["median_rot_deg"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,39 @@
+"""Stage: relocalize the scene's query images with its map -> poses.txt, queries.h5/json."""
+
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig
+
+from usvc.atomic import atomic_dir
+from usvc.config import register_configs
+from usvc.relocalize_scene import relocalize_frames, write_results
+from usvc.relocalizer import RelocalizeOptions, Relocalizer
+from usvc.scene_io import read_scene_h5
+from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    t0 = time.perf_counter()
+    paths = scene_paths(cfg)
+    frames = read_scene_h5(paths.prepared).split("test")
+    options = RelocalizeOptions(backend=cfg.relocalize.backend, max_error_px=cfg.relocalize.max_error_px,
+                                min_inliers=cfg.relocalize.min_inliers, seed=cfg.seed)
+    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options)
+    results = relocalize_frames(relocalizer, frames)
+    out, metrics_path = stage_outputs(cfg, "relocalize")
+    with atomic_dir(out) as tmp:
+        stats = write_results(tmp, frames, results)
+    write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+    log.info("relocalize %s: %d queries, %d failed, %.0f ms/query", cfg.scene.name, stats["queries"],
+             stats["failed"], stats["ms_per_query"])
+
+
+if __name__ == "__main__":
+    main()

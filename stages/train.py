@@ -1,0 +1,52 @@
+"""Stage: fit the scene's regression head on the buffer (ACE reprojection loss) -> map.pt."""
+
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from usvc.atomic import atomic_dir
+from usvc.config import register_configs
+from usvc.evaluation.median_depth import median_scene_depth
+from usvc.model.encoder import load_encoder_weights
+from usvc.model.head import Regressor, save_map
+from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.tracks import read_tracks
+from usvc.training.buffer import read_buffer, read_buffer_attrs
+from usvc.training.train_head import TrainOptions, train_head
+from usvc.weights import encoder_weights_path
+
+log = logging.getLogger("usvc")
+register_configs()
+
+
+@hydra.main(version_base=None, config_path="../conf", config_name="config")
+@stage_main
+def main(cfg: DictConfig) -> None:
+    t0 = time.perf_counter()
+    paths = scene_paths(cfg)
+    buffer_file = paths.buffer / "buffer.h5"
+    buf, attrs = read_buffer(buffer_file), read_buffer_attrs(buffer_file)
+    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    opts = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
+                        seed=cfg.seed)
+    head, summary = train_head(buf, median_depth, opts)
+    weights = encoder_weights_path(cfg.model.encoder_width, cfg.model.encoder_weights)
+    encoder = load_encoder_weights(weights, width=cfg.model.encoder_width)
+    metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
+                "encoder_file": weights.name, "model": cfg.model.name,
+                "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,
+                "final_loss": summary["final_loss"], "train_seconds": summary["train_seconds"]}
+    out, metrics_path = stage_outputs(cfg, "train", artifact="map")
+    with atomic_dir(out) as tmp:
+        save_map(tmp / "map.pt", Regressor(encoder, head), metadata)
+        map_mb = (tmp / "map.pt").stat().st_size / 2**20
+    stats = {**summary, "map_megabytes": map_mb, "seconds": time.perf_counter() - t0,
+             "peak_memory_mb": peak_memory_mb()}
+    write_json(metrics_path, stats)
+    log.info("train %s: map %.2f MB, %.1f s", cfg.scene.name, map_mb, stats["seconds"])
+
+
+if __name__ == "__main__":
+    main()

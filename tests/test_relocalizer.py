@@ -1,0 +1,182 @@
+"""Relocalizer: the pose path on exact synthetic scene coordinates, and its input errors.
+
+An untrained head predicts nothing useful, so the pose tests replace `scene_coordinates` with
+the exact coordinates of a known camera looking at a known depth map; everything else (image
+decoding, resizing to the map's resolution, intrinsics scaling, cell centres, PnP) is real.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from usvc.errors import UsvcError
+from usvc.evaluation import BACKENDS, rotation_error_deg
+from usvc.model.encoder import Encoder, cell_centers
+from usvc.model.errors import ModelError
+from usvc.model.head import Head, Regressor, save_map
+from usvc.relocalizer import PoseEstimate, Relocalizer, RelocalizeOptions
+from usvc.scene import Camera
+
+SHORT_SIDE = 120  # the map's working resolution: 160x120 images, 20x15 cells
+WORK_CAMERA = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))
+R_TRUE = Rotation.from_rotvec([0.1, -0.3, 0.05]).as_matrix()
+T_TRUE = np.array([0.2, -0.1, 1.5])
+
+
+def make_map(tmp_path: Path, seed: int = 0) -> tuple[Path, Path]:
+    """A tiny map (random width-0.25 encoder, random head) and the encoder's weight file."""
+    torch.manual_seed(seed)
+    encoder = Encoder(width=0.25)
+    weights = tmp_path / f"encoder{seed}.pt"
+    torch.save(encoder.state_dict(), weights)
+    head = Head(in_channels=encoder.out_channels, width=64)
+    map_path = tmp_path / f"scene{seed}.map.pt"
+    save_map(map_path, Regressor(encoder, head), {"short_side": SHORT_SIDE})
+    return map_path, weights
+
+
+def exact_coordinates(h_cells: int, w_cells: int, camera: Camera = WORK_CAMERA) -> np.ndarray:
+    """World points seen at the cell centres by (R_TRUE, T_TRUE) on a smooth, non-planar depth map."""
+    uv = cell_centers(h_cells, w_cells, "colmap").permute(1, 2, 0).double().numpy()
+    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+    x, y = (uv[..., 0] - cx) / fx, (uv[..., 1] - cy) / fy
+    depth = 2.0 + 0.4 * x + 0.3 * np.cos(3.0 * y)
+    x_cam = np.stack([x * depth, y * depth, depth], -1)
+    return (x_cam - T_TRUE) @ R_TRUE  # R^T (x_cam - t), row-wise
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    return make_map(tmp_path_factory.mktemp("map"))
+
+
+@pytest.fixture
+def exact(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, int]]:
+    """Patch in exact coordinates; records the (h, w) of every image the network would see."""
+    seen: list[tuple[int, int]] = []
+
+    def fake(self: Relocalizer, gray01: np.ndarray) -> np.ndarray:
+        h, w = gray01.shape
+        seen.append((h, w))
+        return exact_coordinates(-(-h // 8), -(-w // 8))
+
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", fake)
+    return seen
+
+
+def photo(width: int, height: int) -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+
+
+def assert_true_pose(est: PoseEstimate) -> None:
+    assert est.success
+    assert rotation_error_deg(est.R, R_TRUE) < 0.1
+    assert np.linalg.norm(est.t - T_TRUE) < 1e-3
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_recovers_pose(tiny_map: tuple[Path, Path], exact: list, backend: str) -> None:
+    reloc = Relocalizer(*tiny_map, options=RelocalizeOptions(backend=backend))
+    est = reloc.localize(photo(160, 120), (130.0, 125.0, 81.0, 59.0))
+    assert_true_pose(est)
+    assert exact == [(120, 160)]
+    assert est.cells == 15 * 20
+    assert 0.0 < est.confidence <= 1.0
+    assert est.inliers == est.cells  # exact data: every cell agrees
+
+
+@pytest.mark.parametrize("intrinsics", [
+    Camera("PINHOLE", 160, 120, WORK_CAMERA.params),
+    np.array([[130.0, 0.0, 81.0], [0.0, 125.0, 59.0], [0.0, 0.0, 1.0]]),
+])
+def test_intrinsics_forms(tiny_map: tuple[Path, Path], exact: list, intrinsics: object) -> None:
+    assert_true_pose(Relocalizer(*tiny_map).localize(photo(160, 120), intrinsics))
+
+
+def test_focal_only_centres_principal_point(tiny_map: tuple[Path, Path],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    centred = Camera("PINHOLE", 160, 120, (128.0, 128.0, 80.0, 60.0))
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: exact_coordinates(15, 20, centred))
+    assert_true_pose(Relocalizer(*tiny_map).localize(photo(160, 120), 128.0))
+
+
+def test_resizes_to_map_resolution(tiny_map: tuple[Path, Path], exact: list, tmp_path: Path) -> None:
+    """A 2x photo with 2x intrinsics is the same view: resized to the map's short side, same pose."""
+    (fx, fy), (cx, cy) = WORK_CAMERA.focal, WORK_CAMERA.principal_point
+    path = tmp_path / "big.png"
+    cv2.imwrite(str(path), photo(320, 240))
+    est = Relocalizer(*tiny_map).localize(path, (2 * fx, 2 * fy, 2 * cx, 2 * cy))
+    assert exact == [(120, 160)]
+    assert_true_pose(est)
+
+
+def test_outliers_lower_confidence(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(1)
+
+    def noisy(self: Relocalizer, gray01: np.ndarray) -> np.ndarray:
+        coords = exact_coordinates(15, 20)
+        bad = rng.random((15, 20)) < 0.3
+        coords[bad] = rng.uniform(-3.0, 3.0, (int(bad.sum()), 3))
+        return coords
+
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", noisy)
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), WORK_CAMERA)
+    assert_true_pose(est)
+    assert 0.5 < est.confidence < 0.9
+
+
+def test_to_json(tiny_map: tuple[Path, Path], exact: list) -> None:
+    out = Relocalizer(*tiny_map).localize(photo(160, 120), WORK_CAMERA).to_json()
+    assert set(out) == {"success", "inliers", "cells", "confidence", "seconds",
+                        "q_wxyz", "t", "camera_center"}
+    assert set(out["seconds"]) == {"preprocess", "network", "pnp", "total"}
+    assert np.allclose(out["t"], T_TRUE, atol=1e-3)
+    assert np.allclose(out["camera_center"], -R_TRUE.T @ T_TRUE, atol=1e-3)
+    failed = PoseEstimate(False, np.full((3, 3), np.nan), np.full(3, np.nan), 3, 300).to_json()
+    assert failed["confidence"] == 0.0 and "q_wxyz" not in failed and "t" not in failed
+
+
+def test_real_network_runs(tiny_map: tuple[Path, Path]) -> None:
+    """Unpatched: the untrained map gives some answer (likely a failure) of the right shape."""
+    reloc = Relocalizer(*tiny_map)
+    assert reloc.scene_coordinates(np.full((120, 160), 0.5, np.float32)).shape == (15, 20, 3)
+    est = reloc.localize(photo(160, 120), 130.0)
+    assert est.cells == 300 and 0.0 <= est.confidence <= 1.0
+
+
+def test_input_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
+    reloc = Relocalizer(*tiny_map)
+    with pytest.raises(UsvcError, match="intrinsics are missing"):
+        reloc.localize(photo(160, 120), None)
+    with pytest.raises(UsvcError, match="principal point .* outside the 160x120 image"):
+        reloc.localize(photo(160, 120), (260.0, 250.0, 162.0, 118.0))  # intrinsics of a 2x photo
+    with pytest.raises(UsvcError, match="camera is 320x240 but the image is 160x120"):
+        reloc.localize(photo(160, 120), WORK_CAMERA.scaled(320, 240))
+    with pytest.raises(UsvcError, match="image not found"):
+        reloc.localize(tmp_path / "nope.jpg", 130.0)
+    garbage = tmp_path / "garbage.jpg"
+    garbage.write_bytes(b"not a jpeg at all")
+    with pytest.raises(UsvcError, match="cannot decode image"):
+        reloc.localize(garbage, 130.0)
+
+
+def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
+    map_path, weights = tiny_map
+    _, other_weights = make_map(tmp_path, seed=1)
+    with pytest.raises(ModelError, match="another encoder"):
+        Relocalizer(map_path, other_weights)
+    truncated = tmp_path / "truncated.map.pt"
+    data = map_path.read_bytes()
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ModelError, match="corrupt or truncated"):
+        Relocalizer(truncated, weights)
+    with pytest.raises(ModelError, match="map file does not exist"):
+        Relocalizer(tmp_path / "missing.map.pt", weights)
+    with pytest.raises(UsvcError, match="unknown PnP backend"):
+        Relocalizer(map_path, weights, RelocalizeOptions(backend="magic"))

@@ -1,0 +1,165 @@
+"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose.
+
+This is the one implementation behind the relocalize stage, the Python API and `usvc localize`,
+so benchmark numbers and real use cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from usvc.errors import UsvcError
+from usvc.evaluation.pnp import BACKENDS, solve_pnp
+from usvc.geometry import matrix_to_quat_wxyz
+from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
+from usvc.model.errors import ModelError
+from usvc.model.head import Regressor, load_map, read_map_header
+from usvc.model.preprocess import luma01, normalise, resize_to_short_side
+from usvc.scene import Camera
+from usvc.weights import encoder_weights_path
+
+log = logging.getLogger(__name__)
+
+MIN_IMAGE_SIDE = 32
+
+Intrinsics = float | Sequence[float] | np.ndarray | Camera
+
+
+@dataclass(frozen=True)
+class RelocalizeOptions:
+    backend: str = "opencv"
+    max_error_px: float = 10.0  # RANSAC inlier threshold at the map's working resolution
+    min_inliers: int = 10
+    seed: int = 0
+
+
+@dataclass
+class PoseEstimate:
+    """World-to-camera pose (OpenCV axes, scene units); R and t are NaN when `success` is False."""
+
+    success: bool
+    R: np.ndarray
+    t: np.ndarray
+    inliers: int
+    cells: int
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def confidence(self) -> float:
+        """Fraction of the image's cells that agree with the pose (0 when it failed)."""
+        return self.inliers / self.cells if self.success and self.cells else 0.0
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"success": self.success, "inliers": self.inliers, "cells": self.cells,
+                               "confidence": round(self.confidence, 4),
+                               "seconds": {k: round(v, 4) for k, v in self.seconds.items()}}
+        if self.success:
+            out["q_wxyz"] = [float(v) for v in matrix_to_quat_wxyz(self.R)]
+            out["t"] = [float(v) for v in self.t]
+            out["camera_center"] = [float(v) for v in self.center]
+        return out
+
+
+def camera_from_intrinsics(intrinsics: Intrinsics | None, width: int, height: int) -> Camera:
+    """A focal (principal point at the image centre), (fx, fy, cx, cy), a 3x3 K or a Camera."""
+    if intrinsics is None:
+        raise UsvcError("intrinsics are missing: give the focal length in pixels (e.g. --focal 525)")
+    if isinstance(intrinsics, Camera):
+        cam = intrinsics
+        if (cam.width, cam.height) != (width, height):
+            raise UsvcError(f"the camera is {cam.width}x{cam.height} but the image is {width}x{height}")
+        return cam
+    arr = np.asarray(intrinsics, dtype=np.float64)
+    if arr.size == 1:
+        fx = fy = float(arr.reshape(-1)[0])
+        cx, cy = width / 2, height / 2
+    elif arr.shape == (4,):
+        fx, fy, cx, cy = (float(v) for v in arr)
+    elif arr.shape == (3, 3):
+        fx, fy, cx, cy = float(arr[0, 0]), float(arr[1, 1]), float(arr[0, 2]), float(arr[1, 2])
+    else:
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy) or a 3x3 K, got shape {arr.shape}")
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise UsvcError(f"intrinsics must be finite with positive focal lengths, got fx={fx}, fy={fy}")
+    if not (0 < cx < width and 0 < cy < height):
+        raise UsvcError(f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image: "
+                        "wrong image size for these intrinsics?")
+    return Camera("PINHOLE", width, height, (fx, fy, cx, cy))
+
+
+def _as_gray(image: np.ndarray | str | Path) -> np.ndarray:
+    """Path or uint8 RGB/grey array -> float luma in [0, 1]."""
+    if isinstance(image, (str, Path)):
+        path = Path(image)
+        if not path.is_file():
+            raise UsvcError(f"image not found: {path}")
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise UsvcError(f"cannot decode image {path}")
+        return luma01(bgr, rgb=False)
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+        raise UsvcError(f"image must be a uint8 HxW or HxWx3 RGB array, got {arr.dtype} {arr.shape}")
+    return luma01(arr, rgb=True)
+
+
+class Relocalizer:
+    """A loaded map (head + its encoder), ready to localize photos of that scene."""
+
+    def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
+                 options: RelocalizeOptions | None = None, device: str = "cpu") -> None:
+        self.options = options or RelocalizeOptions()
+        if self.options.backend not in BACKENDS:
+            raise UsvcError(f"unknown PnP backend {self.options.backend!r}; known: {list(BACKENDS)}")
+        header = read_map_header(map_path)
+        width = float(header["encoder"].get("width", 1.0))
+        weights = encoder_weights_path(width, encoder_weights)
+        encoder: Encoder = load_encoder_weights(weights, width=width)
+        self.regressor: Regressor
+        self.regressor, self.metadata = load_map(map_path, encoder)
+        self.regressor.to(device).eval()
+        self.device = device
+        self.short_side = int(self.metadata.get("short_side", 0)) or None
+        self.map_path = Path(map_path)
+
+    @torch.inference_mode()
+    def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
+        """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
+        out = self.regressor(normalise(gray01).to(self.device))[0]
+        return out.permute(1, 2, 0).double().cpu().numpy()
+
+    def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None) -> PoseEstimate:
+        t0 = time.perf_counter()
+        gray = _as_gray(image)
+        h, w = gray.shape
+        if min(h, w) < MIN_IMAGE_SIDE:
+            raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
+        camera = camera_from_intrinsics(intrinsics, w, h)
+        if self.short_side and min(h, w) != self.short_side:
+            gray, _ = resize_to_short_side(gray, self.short_side)
+            camera = camera.scaled(gray.shape[1], gray.shape[0])
+        t1 = time.perf_counter()
+        coords = self.scene_coordinates(gray)
+        t2 = time.perf_counter()
+        hc, wc = coords.shape[:2]
+        pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+        result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=self.options.max_error_px,
+                           seed=self.options.seed, min_inliers=self.options.min_inliers,
+                           backend=self.options.backend)
+        t3 = time.perf_counter()
+        seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
+        return PoseEstimate(result.success, result.R, result.t, result.num_inliers, hc * wc, seconds)
+

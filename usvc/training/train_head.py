@@ -1,0 +1,160 @@
+"""Head training on the buffer with ACE's reprojection loss (mapping, issue 3).
+
+Depth bounds and the invalid-prediction depth are given in units of the scene's median depth,
+so one configuration serves metric scenes and scenes in arbitrary SfM units alike (ACE's
+0.1 m / 10 m / 1000 m at a typical indoor median depth of 2 m are 0.05 / 5 / 500).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from usvc.errors import UsvcError
+from usvc.model.head import Head
+from usvc.training.adabelief import AdaBelief
+from usvc.training.buffer import TrainingBuffer
+from usvc.training.reprojection_loss import reprojection_loss
+from usvc.training.schedule import circle_threshold
+
+log = logging.getLogger(__name__)
+
+OPTIMIZERS = ("adamw", "adabelief")
+SCHEDULES = ("one_cycle", "constant")
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    iterations: int = 2000
+    batch_size: int = 5120
+    optimizer: str = "adamw"
+    lr: float = 5e-3  # peak LR of the one-cycle schedule, or the constant LR
+    schedule: str = "one_cycle"
+    warmup_fraction: float = 0.3
+    weight_decay: float = 0.01
+    threshold_start: float = 50.0  # tau (px) goes from threshold_start + threshold_end to threshold_end
+    threshold_end: float = 1.0
+    depth_min_rel: float = 0.05
+    depth_max_rel: float = 500.0
+    invalid_depth_rel: float = 5.0
+    max_reproj_px: float = 1000.0
+    head_width: int = 512
+    head_blocks: int = 1
+    seed: int = 0
+
+
+def validate_options(opts: TrainOptions) -> None:
+    problems = []
+    if opts.optimizer not in OPTIMIZERS:
+        problems.append(f"train.optimizer={opts.optimizer!r} (expected one of {OPTIMIZERS})")
+    if opts.schedule not in SCHEDULES:
+        problems.append(f"train.schedule={opts.schedule!r} (expected one of {SCHEDULES})")
+    if opts.iterations < 1 or opts.batch_size < 1:
+        problems.append("train.iterations and train.batch_size must be >= 1")
+    if not 0 < opts.depth_min_rel < opts.invalid_depth_rel < opts.depth_max_rel:
+        problems.append("need 0 < train.depth_min_rel < train.invalid_depth_rel < train.depth_max_rel")
+    if problems:
+        raise UsvcError("invalid training options: " + "; ".join(problems))
+
+
+def mapping_center(buf: TrainingBuffer) -> np.ndarray:
+    """Mean camera centre of the mapping images (ACE's scene centre); rolls keep the centre."""
+    centres = -np.einsum("vji,vj->vi", buf.view_R.astype(np.float64), buf.view_t.astype(np.float64))
+    _, first = np.unique(buf.view_image, return_index=True)
+    return centres[first].mean(axis=0)
+
+
+def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
+    if opts.optimizer == "adamw":
+        optim: torch.optim.Optimizer = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    else:
+        optim = AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    if opts.schedule == "one_cycle":
+        sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
+                                                    pct_start=opts.warmup_fraction)
+    else:
+        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
+    return optim, sched
+
+
+def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
+               device: str = "cpu") -> tuple[Head, dict[str, Any]]:
+    """Fit a fresh head to the buffer; returns it and training statistics."""
+    validate_options(opts)
+    if not (np.isfinite(median_depth) and median_depth > 0):
+        raise UsvcError(f"training needs a positive median scene depth, got {median_depth}")
+    n = len(buf.features)
+    if n < opts.batch_size:
+        raise UsvcError(f"the buffer has {n} cells, fewer than one batch ({opts.batch_size}); "
+                        "raise buffer.size or lower train.batch_size")
+    torch.manual_seed(opts.seed)
+    gen = torch.Generator().manual_seed(opts.seed)
+    head = Head(in_channels=buf.features.shape[1], width=opts.head_width, num_blocks=opts.head_blocks)
+    head.set_scene_center(mapping_center(buf))
+    head.to(device).train()
+
+    feats = torch.from_numpy(buf.features)  # fp16; batches are cast on the fly
+    pixels = torch.from_numpy(buf.pixels).float()
+    view = torch.from_numpy(buf.view_index.astype(np.int64))
+    Rv = torch.from_numpy(buf.view_R).float()
+    tv = torch.from_numpy(buf.view_t).float()
+    Kv = torch.from_numpy(buf.view_K).float()
+    Kinv = torch.linalg.inv(Kv)
+    depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
+    invalid_depth = opts.invalid_depth_rel * median_depth
+
+    optim, sched = _optimizer(opts, head.parameters())
+    order = torch.randperm(n, generator=gen)
+    cursor, epochs = 0, 0
+    history: list[tuple[float, float, float]] = []
+    start = time.perf_counter()
+    bar = tqdm(range(opts.iterations), desc="train", unit="it")
+    for it in bar:
+        if cursor + opts.batch_size > n:
+            order, cursor, epochs = torch.randperm(n, generator=gen), 0, epochs + 1
+        idx = order[cursor:cursor + opts.batch_size]
+        cursor += opts.batch_size
+        v = view[idx]
+        x = feats[idx].to(device=device, dtype=torch.float32)
+        pred = head.forward_flat(x)
+        tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
+        loss, stats = reprojection_loss(
+            pred, pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
+            Kinv[v].to(device), tau, depth_min=depth_min, depth_max=depth_max,
+            max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        sched.step()
+        if not torch.isfinite(loss):
+            raise UsvcError(f"training diverged at iteration {it} (loss {float(loss)}); lower train.lr")
+        history.append((float(loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
+        if it % 50 == 0:
+            bar.set_postfix(loss=f"{history[-1][0]:.2f}", valid=f"{history[-1][1]:.2f}",
+                            px=f"{history[-1][2]:.1f}", tau=f"{tau:.1f}")
+    seconds = time.perf_counter() - start
+    head.eval()
+    tail = np.array(history[-max(1, len(history) // 20):])
+    summary = {
+        "iterations": opts.iterations,
+        "samples_seen": opts.iterations * opts.batch_size,
+        "epochs": round(opts.iterations * opts.batch_size / n, 2),
+        "final_loss": float(tail[:, 0].mean()),
+        "final_valid_fraction": float(tail[:, 1].mean()),
+        "final_reproj_median_px": float(np.nanmean(tail[:, 2])),
+        "train_seconds": seconds,
+        "samples_per_second": opts.iterations * opts.batch_size / seconds,
+        "median_depth": float(median_depth),
+        "loss_curve": [float(np.mean([h[0] for h in history[i:i + 100]])) for i in range(0, len(history), 100)],
+    }
+    log.info("trained head: %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
+             opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
+             summary["final_reproj_median_px"])
+    return head, summary
+
