@@ -46,10 +46,12 @@ def test_crop_targets_are_the_world_points_under_the_cell_centres(room):
 
 
 def test_short_pretraining_lowers_the_loss_and_writes_a_loadable_file(tmp_path):
-    opts = PretrainOptions(encoder_width=0.25, n_scenes=2, frames_per_scene=4, head_width=32, iterations=60,
-                           batch=2, crop_h=64, crop_w=96, lr=3e-3)
+    opts = PretrainOptions(encoder_width=0.25, n_scenes=2, frames_per_scene=8, iterations=60, batch=4,
+                           objective="contrastive", lr=2e-3)
     encoder, prov = pretrain_encoder(opts)
-    assert prov["loss_last_100"] < prov["loss_first_100"]
+    assert prov["loss_curve"][-1] < prov["loss_curve"][0]
+    assert set(prov["held_out_matching_top1"]) == {"pretrained", "random_init"}
+    assert prov["feature_scale_applied"] > 0
     assert prov["corpus"]["room_seeds"] == [1000, 1001]
     record = save_encoder_weights(tmp_path / "enc.pt", encoder, prov)
     loaded = load_encoder_weights(tmp_path / "enc.pt", width=0.25)
@@ -61,3 +63,13 @@ def test_short_pretraining_lowers_the_loss_and_writes_a_loadable_file(tmp_path):
 def test_oversized_texture_is_rejected_with_its_reason():
     with pytest.raises(UsvcError, match="texture_resolution"):
         validate(replace(RoomParams(), room_x=6.0, texture_resolution=400.0))
+
+
+def test_regression_objective_runs_with_one_head_per_room():
+    opts = PretrainOptions(encoder_width=0.25, n_scenes=2, frames_per_scene=2, head_width=16, iterations=3,
+                           objective="regression",
+                           batch=2, crop_h=64, crop_w=64)
+    _, prov = pretrain_encoder(opts)
+    assert np.isfinite(prov["loss_last_100"])
+    with pytest.raises(UsvcError, match="objective"):
+        pretrain_encoder(replace(opts, objective="magic"))

@@ -46,7 +46,7 @@ class PretrainOptions:
     loss_clamp: float = 2.0  # metres; a cell this wrong pulls no harder
     seed: int = 0
     threads: int = 0  # torch CPU threads, 0 = torch's default
-    objective: str = "regression"  # regression (one head per room) | contrastive (cell matching)
+    objective: str = "contrastive"  # contrastive (cell matching across views) | regression (one head per room)
     pair_max_gap: int = 3  # contrastive: the second view is at most this many frames away
     positive_radius: float = 0.05  # contrastive: cells whose surface points are this close match (m)
     negative_radius: float = 0.3  # contrastive: cells nearer than this (but not the match) are ignored
@@ -124,8 +124,35 @@ def _contrastive_batch(corpus: list[CorpusScene], opts: PretrainOptions, rng: np
     return torch.stack(losses).mean()
 
 
+@torch.inference_mode()
+def calibrate_feature_scale(encoder: Encoder, corpus: list[CorpusScene], seed: int = 0, frames: int = 16) -> float:
+    """Rescale the output so features vary by ~1 per channel across cells; returns the factor.
+
+    The contrastive loss sees only normalised features, so their scale is arbitrary, while the
+    head's first layer and its optimiser expect inputs of order one. The output is
+    relu(res2_conv3(.)) + res2_skip(.), positively homogeneous in those two layers, so scaling
+    both layers' weights and biases by c scales the features by exactly c.
+    """
+    rng = np.random.default_rng(seed)
+    stds = []
+    for _ in range(frames):
+        scene = corpus[int(rng.integers(len(corpus)))]
+        gray = scene.gray[int(rng.integers(len(scene.gray)))]
+        x = torch.from_numpy((gray[None, None] - INPUT_MEAN) / INPUT_STD).float()
+        f = encoder(x.to(next(encoder.parameters()).device))[0].flatten(1)
+        stds.append(f.std(dim=1).mean().item())
+    c = 1.0 / max(float(np.mean(stds)), 1e-12)
+    for layer in (encoder.res2_conv3, encoder.res2_skip):
+        layer.weight.mul_(c)
+        layer.bias.mul_(c)
+    log.info("feature scale: per-channel std across cells %.4g -> 1 (factor %.4g)", float(np.mean(stds)), c)
+    return c
+
+
 def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encoder, dict[str, Any]]:
     """Train an encoder from scratch on the generated corpus; returns it and its provenance."""
+    if opts.objective not in ("regression", "contrastive"):
+        raise UsvcError(f"pretrain objective must be 'regression' or 'contrastive', got {opts.objective!r}")
     if opts.threads > 0:
         torch.set_num_threads(opts.threads)
     torch.manual_seed(opts.seed)
@@ -134,8 +161,6 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
     corpus = build_corpus(opts.n_scenes, opts.first_seed, opts.frames_per_scene)
     corpus_seconds = time.perf_counter() - t0
 
-    if opts.objective not in ("regression", "contrastive"):
-        raise UsvcError(f"pretrain objective must be 'regression' or 'contrastive', got {opts.objective!r}")
     encoder = Encoder(opts.encoder_width).to(device).train()
     heads = torch.nn.ModuleList()
     for scene in (corpus if opts.objective == "regression" else []):
@@ -188,6 +213,10 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
                      history[-1], float(np.mean(history[-100:])))
     train_seconds = time.perf_counter() - t1
     encoder.eval().requires_grad_(False)
+    feature_scale = calibrate_feature_scale(encoder, corpus, opts.seed)
+    from usvc.training.feature_eval import held_out_matching
+
+    matching = held_out_matching(encoder, opts)
     window = max(1, min(100, len(history)))
     provenance = {
         "options": asdict(opts),
@@ -196,11 +225,13 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
         "loss_first_100": float(np.mean(history[:window])),
         "loss_last_100": float(np.mean(history[-window:])),
         "loss_curve": [float(np.mean(history[i:i + 50])) for i in range(0, len(history), 50)],
+        "held_out_matching_top1": matching,
+        "feature_scale_applied": feature_scale,
         "corpus_seconds": round(corpus_seconds, 1),
         "train_seconds": round(train_seconds, 1),
         "device": device,
         "torch": torch.__version__,
     }
-    log.info("pretrained encoder width %g: loss %.3f -> %.3f m in %.0f s", opts.encoder_width,
+    log.info("pretrained encoder width %g: loss %.3f -> %.3f in %.0f s", opts.encoder_width,
              provenance["loss_first_100"], provenance["loss_last_100"], train_seconds)
     return encoder, provenance
