@@ -44,10 +44,9 @@ def repo(tmp_path_factory) -> Path:
             shutil.copy2(src, dst / rel)
     # The whole pipeline runs, with mapping cut to a few seconds: this test is about caching and
     # wiring; accuracy on the miniature scene is measured by `.ci/run`'s own `dvc repro`.
-    _set(dst / "conf/config.yaml", "  - model: default", "  - model: small")
     _set(dst / "conf/buffer/default.yaml", "size: 262144", "size: 16384")
-    _set(dst / "conf/train/default.yaml", "iterations: 2000", "iterations: 20")
-    _set(dst / "conf/train/default.yaml", "batch_size: 5120", "batch_size: 1024")
+    _set(dst / "conf/train/default.yaml", "iterations: 6000", "iterations: 20")
+    _set(dst / "conf/train/default.yaml", "batch_size: 2048", "batch_size: 1024")
     _run(["git", "init", "-q"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "add", "-A"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "commit", "-qm", "copy"], dst)

@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--backend", choices=("opencv", "pycolmap"), default="opencv",
                      help="RANSAC-PnP solver")
     loc.add_argument("--max-error-px", type=float, default=10.0,
-                     help="RANSAC inlier threshold in pixels at the map's working resolution")
+                     help="RANSAC inlier threshold in pixels at a 480 px short side (scaled to the map's working size)")
     loc.add_argument("--device", default="cpu")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")

@@ -78,8 +78,8 @@ class BufferConfig:
 
 @dataclass
 class TrainConfig:
-    iterations: int = 2000
-    batch_size: int = 5120
+    iterations: int = 6000
+    batch_size: int = 2048
     optimizer: str = "adamw"  # adamw | adabelief
     lr: float = 5e-3
     schedule: str = "one_cycle"  # one_cycle | constant
@@ -96,7 +96,7 @@ class TrainConfig:
 @dataclass
 class RelocalizeConfig:
     backend: str = "opencv"  # opencv | pycolmap
-    max_error_px: float = 10.0
+    max_error_px: float = 10.0  # RANSAC inlier threshold at a 480 px short side, scaled to the working size
     min_inliers: int = 10
 
 

@@ -37,7 +37,8 @@ Intrinsics = float | Sequence[float] | np.ndarray | Camera
 @dataclass(frozen=True)
 class RelocalizeOptions:
     backend: str = "opencv"
-    max_error_px: float = 10.0  # RANSAC inlier threshold at the map's working resolution
+    max_error_px: float = 10.0  # RANSAC inlier threshold in pixels of an image with a 480 px short side
+    reference_short_side: int = 480  # ACE's working short side, where its 10 px threshold was tuned
     min_inliers: int = 10
     seed: int = 0
 
@@ -155,8 +156,10 @@ class Relocalizer:
         coords = self.scene_coordinates(gray)
         t2 = time.perf_counter()
         hc, wc = coords.shape[:2]
+        # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
+        threshold = self.options.max_error_px * min(gray.shape) / self.options.reference_short_side
         pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
-        result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=self.options.max_error_px,
+        result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                            seed=self.options.seed, min_inliers=self.options.min_inliers,
                            backend=self.options.backend)
         t3 = time.perf_counter()

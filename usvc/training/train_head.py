@@ -31,8 +31,8 @@ SCHEDULES = ("one_cycle", "constant")
 
 @dataclass(frozen=True)
 class TrainOptions:
-    iterations: int = 2000
-    batch_size: int = 5120
+    iterations: int = 6000
+    batch_size: int = 2048
     optimizer: str = "adamw"
     lr: float = 5e-3  # peak LR of the one-cycle schedule, or the constant LR
     schedule: str = "one_cycle"
