@@ -2,7 +2,7 @@
 
 Both models use the encoder weights shipped in usvc/weights when they exist, else random ones
 (speed does not depend on the values; the table says which). The head has the configured
-layout (width 512, one extra block). PnP runs through `solve_pnp` on what a good map would give:
+layout of conf/model/<name>.yaml (default: 512 wide, small: 256). PnP runs through `solve_pnp` on what a good map would give:
 the cell centres of a PINHOLE camera (f = 0.82 x width) looking at a tilted plane 1.5-3 m away,
 1 cm 3D noise, 30 % of the cells replaced by points drawn from the box of the others. Each number
 is the median over --runs queries after --warmup untimed ones; "total" is the median of the
@@ -23,7 +23,10 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from omegaconf import OmegaConf  # noqa: E402
 
 from usvc.errors import UsvcError  # noqa: E402
 from usvc.evaluation import rotation_error_deg, solve_pnp  # noqa: E402
@@ -39,8 +42,13 @@ from usvc.model.preprocess import normalise  # noqa: E402
 from usvc.scene import Camera  # noqa: E402
 from usvc.weights import shipped_encoder_path  # noqa: E402
 
-MODELS = {"default": 1.0, "small": 0.5}
-HEAD_WIDTH, HEAD_BLOCKS = 512, 1  # conf/model/*.yaml
+MODELS = ("default", "small")
+
+
+def model_config(name: str) -> tuple[float, int, int]:
+    """(encoder width, head width, head blocks) read from conf/model/<name>.yaml, the one source."""
+    cfg = OmegaConf.load(ROOT / "conf" / "model" / f"{name}.yaml")
+    return float(cfg.encoder_width), int(cfg.head_width), int(cfg.head_blocks)
 OUTLIER_RATIO = 0.3
 POINT_NOISE_M = 0.01
 
@@ -142,9 +150,10 @@ def main() -> None:
               f"{'total ms':>9} {'GFLOP':>6} {'GFLOP/s':>8} {'pnp ok':>7}")
     print(header)
     print("-" * len(header))
-    for model, width in MODELS.items():
+    for model in MODELS:
+        width, head_width, head_blocks = model_config(model)
         encoder, source = load_encoder(width)
-        head = Head(encoder.out_channels, HEAD_WIDTH, HEAD_BLOCKS).eval().requires_grad_(False)
+        head = Head(encoder.out_channels, head_width, head_blocks).eval().requires_grad_(False)
         encoder.to(device)
         head.to(device)
         for w, h in args.sizes:

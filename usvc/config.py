@@ -81,11 +81,11 @@ class TrainConfig:
     iterations: int = 6000
     batch_size: int = 2048
     optimizer: str = "adamw"  # adamw | adabelief
-    lr: float = 5e-3
+    lr: float = 5e-3  # peak LR of the one-cycle schedule, or the constant LR
     schedule: str = "one_cycle"  # one_cycle | constant
     warmup_fraction: float = 0.3
     weight_decay: float = 0.01
-    threshold_start: float = 50.0
+    threshold_start: float = 50.0  # tau (px) goes from threshold_start + threshold_end to threshold_end
     threshold_end: float = 1.0
     depth_min_rel: float = 0.05  # depth bounds in units of the scene's median depth
     depth_max_rel: float = 500.0

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from usvc.config import TrainConfig
 from usvc.errors import UsvcError
 from usvc.model.head import Head
 from usvc.training.adabelief import AdaBelief
@@ -29,23 +30,12 @@ OPTIMIZERS = ("adamw", "adabelief")
 SCHEDULES = ("one_cycle", "constant")
 
 
-@dataclass(frozen=True)
-class TrainOptions:
-    iterations: int = 6000
-    batch_size: int = 2048
-    optimizer: str = "adamw"
-    lr: float = 5e-3  # peak LR of the one-cycle schedule, or the constant LR
-    schedule: str = "one_cycle"
-    warmup_fraction: float = 0.3
-    weight_decay: float = 0.01
-    threshold_start: float = 50.0  # tau (px) goes from threshold_start + threshold_end to threshold_end
-    threshold_end: float = 1.0
-    depth_min_rel: float = 0.05
-    depth_max_rel: float = 500.0
-    invalid_depth_rel: float = 5.0
-    max_reproj_px: float = 1000.0
-    head_width: int = 512
-    head_blocks: int = 1
+@dataclass
+class TrainOptions(TrainConfig):
+    """The `train` config group (one schema, in usvc/config.py) plus what comes from elsewhere."""
+
+    head_width: int = 512  # model.head_width
+    head_blocks: int = 1  # model.head_blocks
     seed: int = 0
 
 
