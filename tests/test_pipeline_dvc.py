@@ -86,7 +86,7 @@ def test_relocalize_change_reruns_only_relocalize_and_metrics(repo):
     conf = repo / "conf/relocalize/default.yaml"
     map_digest = _digest(repo / "data/mini/map/map.pt")
     conf.write_text(conf.read_text().replace("max_error_px: 10.0", "max_error_px: 8.0"))
-    assert _status(repo) == {"relocalize@mini", "metrics@mini"}
+    assert _status(repo) == {"relocalize@mini"}  # metrics changes once relocalize has rerun
     out = _run([sys.executable, "-m", "dvc", "repro"], repo).stdout
     assert "Running stage 'relocalize@mini'" in out and "Running stage 'metrics@mini'" in out
     for stage in ("buffer@mini", "train@mini", "sfm@mini"):
