@@ -8,7 +8,7 @@ import torch
 
 from usvc.model.encoder import Encoder
 from usvc.model.preprocess import INPUT_MEAN, INPUT_STD
-from usvc.training.pretrain import PretrainOptions, _crop, _pair_frames
+from usvc.training.pretrain import PretrainOptions, _crop, _pair_frames, cell_correspondences
 from usvc.training.pretrain_data import CorpusScene, build_corpus
 
 HELD_OUT_SEEDS = 5000  # corpus rooms use 1000+, the miniature scene 0
@@ -27,12 +27,8 @@ def matching_accuracy(encoder: Encoder, rooms: list[CorpusScene], pairs_per_room
             views = [_crop(room, f, opts, rng) for f in _pair_frames(room, PretrainOptions(pair_max_gap=3), rng)]
             x = torch.from_numpy((np.stack([v[0] for v in views])[:, None] - INPUT_MEAN) / INPUT_STD).float()
             fa, fb = (torch.nn.functional.normalize(f.flatten(1).T, dim=1) for f in encoder(x))
-            xa, xb = (torch.from_numpy(v[1]).reshape(-1, 3) for v in views)
-            ok_a, ok_b = torch.isfinite(xa).all(1), torch.isfinite(xb).all(1)
-            dist = torch.cdist(torch.nan_to_num(xa, 1e6), torch.nan_to_num(xb, -1e6))
-            dist[:, ~ok_b] = float("inf")
-            nearest, match = dist.min(1)
-            anchor = ok_a & (nearest < positive_radius)
+            _, match, anchor, ok_b = cell_correspondences(torch.from_numpy(views[0][1]),
+                                                          torch.from_numpy(views[1][1]), positive_radius)
             sim = fa[anchor] @ fb.T
             sim[:, ~ok_b] = -2.0
             hits += int((sim.argmax(1) == match[anchor]).sum())

@@ -75,6 +75,21 @@ def _crop(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.
     return crop.astype(np.float32), target
 
 
+def cell_correspondences(xa: torch.Tensor, xb: torch.Tensor, positive_radius: float
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Surface-point distances between the cells of two views, (h, w, 3) each with NaN = no point.
+
+    Returns (dist (Na, Nb) with inf for cells of b without a point, match: the nearest cell of b
+    per cell of a, anchor: cells of a whose nearest lies within `positive_radius`, ok_b).
+    """
+    xa, xb = xa.reshape(-1, 3), xb.reshape(-1, 3)
+    ok_a, ok_b = torch.isfinite(xa).all(1), torch.isfinite(xb).all(1)
+    dist = torch.cdist(torch.nan_to_num(xa, 1e6), torch.nan_to_num(xb, -1e6))
+    dist[:, ~ok_b] = float("inf")
+    nearest, match = dist.min(dim=1)
+    return dist, match, ok_a & (nearest < positive_radius), ok_b
+
+
 def contrastive_loss(fa: torch.Tensor, fb: torch.Tensor, xa: torch.Tensor, xb: torch.Tensor,
                      opts: PretrainOptions) -> torch.Tensor:
     """InfoNCE between cells of two views of one room: a cell's positive is the cell of the other
@@ -84,12 +99,7 @@ def contrastive_loss(fa: torch.Tensor, fb: torch.Tensor, xa: torch.Tensor, xb: t
     viewpoint-stable local features."""
     fa = torch.nn.functional.normalize(fa.flatten(1).T, dim=1)  # (Na, C)
     fb = torch.nn.functional.normalize(fb.flatten(1).T, dim=1)
-    xa, xb = xa.reshape(-1, 3), xb.reshape(-1, 3)
-    ok_a, ok_b = torch.isfinite(xa).all(1), torch.isfinite(xb).all(1)
-    dist = torch.cdist(torch.nan_to_num(xa, 1e6), torch.nan_to_num(xb, -1e6))
-    dist[:, ~ok_b] = float("inf")
-    nearest, match = dist.min(dim=1)
-    anchor = ok_a & (nearest < opts.positive_radius)
+    dist, match, anchor, ok_b = cell_correspondences(xa, xb, opts.positive_radius)
     if int(anchor.sum()) == 0:
         return fa.sum() * 0.0
     logits = fa[anchor] @ fb.T / opts.temperature
