@@ -8,11 +8,10 @@ from omegaconf import DictConfig
 
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
-from usvc.model.encoder import load_encoder_weights
 from usvc.scene_io import read_scene_h5
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.training.buffer import BufferOptions, fill_buffer, write_buffer
-from usvc.weights import encoder_weights_path
+from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")
 register_configs()
@@ -23,8 +22,7 @@ register_configs()
 def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     frames = read_scene_h5(scene_paths(cfg).prepared).split("train")
-    weights = encoder_weights_path(cfg.model.encoder_width, cfg.model.encoder_weights)
-    encoder = load_encoder_weights(weights, width=cfg.model.encoder_width)
+    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
     b = cfg.buffer
     short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
     opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,

@@ -9,13 +9,12 @@ from omegaconf import DictConfig, OmegaConf
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
 from usvc.evaluation.median_depth import median_scene_depth
-from usvc.model.encoder import load_encoder_weights
 from usvc.model.head import Regressor, save_map
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.tracks import read_tracks
 from usvc.training.buffer import read_buffer, read_buffer_attrs
 from usvc.training.train_head import TrainOptions, train_head
-from usvc.weights import encoder_weights_path
+from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")
 register_configs()
@@ -32,8 +31,7 @@ def main(cfg: DictConfig) -> None:
     opts = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
                         seed=cfg.seed)
     head, summary = train_head(buf, median_depth, opts)
-    weights = encoder_weights_path(cfg.model.encoder_width, cfg.model.encoder_weights)
-    encoder = load_encoder_weights(weights, width=cfg.model.encoder_width)
+    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,

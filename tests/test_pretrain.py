@@ -14,7 +14,7 @@ from usvc.errors import UsvcError
 from usvc.model.encoder import encoder_fingerprint, load_encoder_weights
 from usvc.synth.params import RoomParams, validate
 from usvc.training.encoder_file import save_encoder_weights
-from usvc.training.pretrain import PretrainOptions, _crop, pretrain_encoder
+from usvc.training.pretrain import PretrainOptions, crop_view, pretrain_encoder
 from usvc.training.pretrain_data import corpus_params, render_scene
 
 
@@ -34,7 +34,7 @@ def test_crop_targets_are_the_world_points_under_the_cell_centres(room):
     opts = PretrainOptions(scale_min=1.0, scale_max=1.0, crop_h=120, crop_w=160)
     rng = np.random.default_rng(0)
     state = rng.bit_generator.state
-    crop, target = _crop(room, 0, opts, rng)
+    crop, target = crop_view(room, 0, opts, rng)
     assert crop.shape == (120, 160) and target.shape == (15, 20, 3)
     # replay the draws: scale (ignored at 1.0), then the crop offsets in cell units
     rng.bit_generator.state = state

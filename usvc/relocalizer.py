@@ -19,7 +19,7 @@ import torch
 
 from usvc.errors import UsvcError
 from usvc.evaluation.pnp import BACKENDS, solve_pnp
-from usvc.geometry import matrix_to_quat_wxyz
+from usvc.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
 from usvc.model.errors import ModelError
 from usvc.model.head import Regressor, load_map, read_map_header
@@ -61,7 +61,7 @@ class PoseEstimate:
 
     @property
     def center(self) -> np.ndarray:
-        return -self.R.T @ self.t
+        return camera_centers(self.R, self.t)
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"success": self.success, "inliers": self.inliers, "cells": self.cells,

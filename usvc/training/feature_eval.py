@@ -8,7 +8,7 @@ import torch
 
 from usvc.model.encoder import Encoder
 from usvc.model.preprocess import INPUT_MEAN, INPUT_STD
-from usvc.training.pretrain import PretrainOptions, _crop, _pair_frames, cell_correspondences
+from usvc.training.pretrain import PretrainOptions, crop_view, pair_frames, cell_correspondences
 from usvc.training.pretrain_data import CorpusScene, build_corpus
 
 HELD_OUT_SEEDS = 5000  # corpus rooms use 1000+, the miniature scene 0
@@ -24,7 +24,7 @@ def matching_accuracy(encoder: Encoder, rooms: list[CorpusScene], pairs_per_room
     encoder.eval()
     for room in rooms:
         for _ in range(pairs_per_room):
-            views = [_crop(room, f, opts, rng) for f in _pair_frames(room, PretrainOptions(pair_max_gap=3), rng)]
+            views = [crop_view(room, f, opts, rng) for f in pair_frames(room, PretrainOptions(pair_max_gap=3), rng)]
             x = torch.from_numpy((np.stack([v[0] for v in views])[:, None] - INPUT_MEAN) / INPUT_STD).float()
             fa, fb = (torch.nn.functional.normalize(f.flatten(1).T, dim=1) for f in encoder(x))
             _, match, anchor, ok_b = cell_correspondences(torch.from_numpy(views[0][1]),

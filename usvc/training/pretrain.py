@@ -53,7 +53,7 @@ class PretrainOptions:
     temperature: float = 0.07
 
 
-def _crop(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.Generator
+def crop_view(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.Generator
           ) -> tuple[np.ndarray, np.ndarray]:
     """(crop luma (h, w), target xyz per cell (h/8, w/8, 3) with NaN where invalid)."""
     gray = scene.gray[frame]
@@ -109,7 +109,7 @@ def contrastive_loss(fa: torch.Tensor, fb: torch.Tensor, xa: torch.Tensor, xb: t
     return torch.nn.functional.cross_entropy(logits, match[anchor])
 
 
-def _pair_frames(scene: CorpusScene, opts: PretrainOptions, rng: np.random.Generator) -> tuple[int, int]:
+def pair_frames(scene: CorpusScene, opts: PretrainOptions, rng: np.random.Generator) -> tuple[int, int]:
     """Two nearby frames of one mapping sequence (the corpus has two sequences of equal length)."""
     seq_len = max(1, len(scene.gray) // 2)
     a = int(rng.integers(len(scene.gray)))
@@ -123,8 +123,8 @@ def _contrastive_batch(corpus: list[CorpusScene], opts: PretrainOptions, rng: np
     crops, targets = [], []
     for _ in range(max(1, opts.batch // 2)):
         scene = corpus[int(rng.integers(len(corpus)))]
-        for frame in _pair_frames(scene, opts, rng):
-            crop, target = _crop(scene, frame, opts, rng)
+        for frame in pair_frames(scene, opts, rng):
+            crop, target = crop_view(scene, frame, opts, rng)
             crops.append(crop)
             targets.append(target)
     x = torch.from_numpy((np.stack(crops)[:, None] - INPUT_MEAN) / INPUT_STD).float().to(device)
@@ -201,7 +201,7 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
         scene_ids = rng.choice(len(corpus), size=batch, replace=False)
         crops, targets = [], []
         for sid in scene_ids:
-            crop, target = _crop(corpus[sid], int(rng.integers(len(corpus[sid].gray))), opts, rng)
+            crop, target = crop_view(corpus[sid], int(rng.integers(len(corpus[sid].gray))), opts, rng)
             crops.append(crop)
             targets.append(target)
         x = torch.from_numpy((np.stack(crops)[:, None] - INPUT_MEAN) / INPUT_STD).float().to(device)

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from usvc.config import TrainConfig
 from usvc.errors import UsvcError
+from usvc.geometry import camera_centers
 from usvc.model.head import Head
 from usvc.training.adabelief import AdaBelief
 from usvc.training.buffer import TrainingBuffer
@@ -55,7 +56,7 @@ def validate_options(opts: TrainOptions) -> None:
 
 def mapping_center(buf: TrainingBuffer) -> np.ndarray:
     """Mean camera centre of the mapping images (ACE's scene centre); rolls keep the centre."""
-    centres = -np.einsum("vji,vj->vi", buf.view_R.astype(np.float64), buf.view_t.astype(np.float64))
+    centres = camera_centers(buf.view_R, buf.view_t)
     _, first = np.unique(buf.view_image, return_index=True)
     return centres[first].mean(axis=0)
 

@@ -28,3 +28,11 @@ def shipped_encoder_path(width: float) -> Path:
 def encoder_weights_path(width: float, weights: str | Path | None) -> Path:
     """The configured weights file, or the shipped one for `width` when none is configured."""
     return Path(weights) if weights else shipped_encoder_path(width)
+
+
+def load_configured_encoder(width: float, weights: str | Path | None):
+    """(frozen Encoder, its weights path) for a `model` config: the one place stages resolve it."""
+    from usvc.model.encoder import load_encoder_weights
+
+    path = encoder_weights_path(width, weights)
+    return load_encoder_weights(path, width=width), path
