@@ -8,9 +8,10 @@ from omegaconf import DictConfig
 
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
-from usvc.scene_io import read_scene_h5
+from usvc.scene_io import read_depth, read_scene_h5
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.training.buffer import BufferOptions, fill_buffer, write_buffer
+from usvc.training.keypoint_obs import read_scene_keypoints
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")
@@ -21,22 +22,31 @@ register_configs()
 @stage_main
 def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
-    frames = read_scene_h5(scene_paths(cfg).prepared).split("train")
+    paths = scene_paths(cfg)
+    scene = read_scene_h5(paths.prepared)
+    frames = scene.split("train")
+    index = {f.name: i for i, f in enumerate(scene.frames)}
+    depths = [read_depth(paths.prepared, index[f.name]) for f in frames]
+    keypoints = read_scene_keypoints(paths.keypoints / "keypoints.h5")
     encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
     b = cfg.buffer
     short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
     opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,
                          scale_min=b.scale_min, scale_max=b.scale_max, max_rotation_deg=b.max_rotation_deg,
                          brightness=(b.brightness_min, b.brightness_max), contrast=(b.contrast_min, b.contrast_max),
-                         seed=cfg.seed)
-    buf = fill_buffer(frames, encoder, opts)
+                         seed=cfg.seed, keypoint_obs_per_view=b.keypoint_obs_per_view,
+                         depth_visibility_tol=b.depth_visibility_tol)
+    buf = fill_buffer(frames, encoder, opts, keypoints=keypoints,
+                      depths=depths if any(d is not None for d in depths) else None)
     out, metrics_path = stage_outputs(cfg, "buffer")
     with atomic_dir(out) as tmp:
         write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name)
         megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
     stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames),
              "short_side": short_side, "feature_dim": int(buf.features.shape[1]), "megabytes": megabytes,
-             "encoder": weights.name, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
+             "encoder": weights.name, "keypoint_observations": len(buf.kp_id),
+             "keypoints_observed": int(len(set(buf.kp_id.tolist()))), "keypoints_kept": len(buf.keypoint_xyz),
+             "keypoint_observations_from_depth": int(buf.kp_from_depth.sum()), "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
     write_json(metrics_path, stats)
     log.info("buffer %s: %d cells from %d views in %.1f s", cfg.scene.name, stats["cells"], stats["views"],
              stats["seconds"])

@@ -9,7 +9,13 @@ from omegaconf import DictConfig
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
 from usvc.evaluation import read_poses_txt
-from usvc.evaluation.evaluate import PER_QUERY_COLUMNS, evaluate_poses, read_query_stats
+from usvc.evaluation.evaluate import (
+    PER_QUERY_COLUMNS,
+    evaluate_initial_poses,
+    evaluate_poses,
+    read_query_stats,
+    read_refinement_records,
+)
 from usvc.evaluation.median_depth import median_scene_depth
 from usvc.evaluation.plots import write_plots
 from usvc.scene_io import read_scene_h5
@@ -30,6 +36,9 @@ def main(cfg: DictConfig) -> None:
     estimates = read_poses_txt(paths.relocalize / "poses.txt")
     stats = read_query_stats(paths.relocalize / "queries.h5")
     summary, rows = evaluate_poses(scene, estimates, stats, median_depth)
+    records = read_refinement_records(paths.relocalize / "queries.h5")
+    if records is not None:  # older queries.h5 files have no pre-refinement poses
+        summary = {**summary, **evaluate_initial_poses(scene, records, stats, median_depth)}
 
     plots_dir, metrics_path = stage_outputs(cfg, "metrics", artifact="plots")
     with atomic_dir(plots_dir) as tmp:
@@ -39,6 +48,9 @@ def main(cfg: DictConfig) -> None:
     log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg",
              scene.name, headline, summary[headline], summary["n_queries"], summary["n_failed"],
              summary["median_rot_deg"])
+    if f"initial_{headline}" in summary:
+        log.info("metrics %s: before refinement %s=%.3f; refined pose kept for %.0f%% of queries",
+                 scene.name, headline, summary[f"initial_{headline}"], 100 * summary["refine_kept_fraction"])
 
 
 if __name__ == "__main__":

@@ -23,8 +23,7 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     paths = scene_paths(cfg)
     frames = read_scene_h5(paths.prepared).split("test")
-    options = RelocalizeOptions(backend=cfg.relocalize.backend, max_error_px=cfg.relocalize.max_error_px,
-                                min_inliers=cfg.relocalize.min_inliers, seed=cfg.seed)
+    options = RelocalizeOptions(**cfg.relocalize, seed=cfg.seed)
     relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options)
     results = relocalize_frames(relocalizer, frames)
     out, metrics_path = stage_outputs(cfg, "relocalize")

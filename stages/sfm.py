@@ -26,7 +26,7 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     prepared = scene_paths(cfg).prepared
     scene = read_scene_h5(prepared)
-    opts = SfmOptions(**cfg.sfm, seed=cfg.seed)
+    opts = SfmOptions(**cfg.sfm)
     out, metrics_path = stage_outputs(cfg, "sfm")
     with atomic_dir(out) as tmp, tempfile.TemporaryDirectory(prefix="usvc-sfm-") as work:
         rec, info = reconstruct(scene.split("train"), prepared / IMAGE_DIR, Path(work), opts, scene.has_poses)

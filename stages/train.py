@@ -33,12 +33,14 @@ def main(cfg: DictConfig) -> None:
     head, summary = train_head(buf, median_depth, opts)
     encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
-                "encoder_file": weights.name, "model": cfg.model.name,
+                "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,
                 "final_loss": summary["final_loss"], "train_seconds": summary["train_seconds"]}
     out, metrics_path = stage_outputs(cfg, "train", artifact="map")
     with atomic_dir(out) as tmp:
-        save_map(tmp / "map.pt", Regressor(encoder, head), metadata)
+        # The kept keypoints travel with the map: query-time refinement projects them (paper 3.2.2).
+        save_map(tmp / "map.pt", Regressor(encoder, head), metadata,
+                 keypoints_xyz=buf.keypoint_xyz if buf.has_keypoints else None)
         map_mb = (tmp / "map.pt").stat().st_size / 2**20
     stats = {**summary, "map_megabytes": map_mb, "seconds": time.perf_counter() - t0,
              "peak_memory_mb": peak_memory_mb()}

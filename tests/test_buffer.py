@@ -94,3 +94,71 @@ def test_distorted_camera_is_rejected(encoder, tmp_path):
     frame = Frame("a.png", tmp_path / "a.png", cam, "train", np.eye(3), np.zeros(3))
     with pytest.raises(UsvcError, match="a.png.*pinhole"):
         fill_buffer([frame], encoder, OPTS)
+
+
+# --- keypoint tuples (k, d_k, R_i, t_i, u_obs) -------------------------------------------------
+
+def _keypoints_on_surface(prepared, frames, n=60, seed=0):
+    """Surface points back-projected from frame 0's depth: frame 0 observes them in its 'track';
+    the other frames can only see them through depth visibility. Plus points hidden behind walls."""
+    from usvc.scene_io import read_depth
+    from usvc.training.keypoint_obs import SceneKeypoints
+
+    rng = np.random.default_rng(seed)
+    f0 = frames[0]
+    depth = read_depth(prepared, 0)
+    h, w = depth.shape
+    uv = np.stack([rng.uniform(20, w - 20, n), rng.uniform(20, h - 20, n)], axis=1)
+    d = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    rays = np.concatenate([uv, np.ones((n, 1))], axis=1) @ np.linalg.inv(f0.camera.K).T
+    xyz = ((rays * d[:, None]) - f0.t) @ f0.R  # camera -> world
+    hidden = ((rays * 1.6 * d[:, None]) - f0.t) @ f0.R  # behind the visible surface
+    by_image = {f0.name: (np.arange(n), uv)}
+    return SceneKeypoints(xyz=np.concatenate([xyz, hidden]), by_image=by_image), n
+
+
+def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, encoder, tmp_path):
+    from usvc.scene_io import read_depth
+
+    frames = read_scene_h5(scene).split("train")
+    kp, n = _keypoints_on_surface(scene, frames)
+    depths = [read_depth(scene, i) for i in range(len(frames))]
+    buf = fill_buffer(frames, encoder, OPTS, keypoints=kp, depths=depths)
+    plain = fill_buffer(frames, encoder, OPTS)
+    np.testing.assert_array_equal(buf.features, plain.features)  # keypoints do not disturb pixel sampling
+    assert buf.has_keypoints and np.all(np.diff(buf.kp_id) >= 0)
+    X = kp.xyz[buf.kp_id]
+    v = buf.kp_view
+    p = np.einsum("nij,nj->ni", buf.view_R[v], X) + buf.view_t[v]
+    proj = np.einsum("nij,nj->ni", buf.view_K[v], p)
+    err = np.linalg.norm(proj[:, :2] / proj[:, 2:] - buf.kp_pixels, axis=1)
+    assert err.max() < 0.05, err.max()
+    # track observations only in frame 0; frames 1, 2 see the surface points through depth
+    source = buf.view_image[v]
+    assert not buf.kp_from_depth[source == 0].any()
+    assert buf.kp_from_depth[source != 0].all() and (source != 0).any()
+    # points hidden behind the surface are never observed: not in a track, and depth disagrees
+    assert buf.kp_id.max() < n
+    write_buffer(tmp_path / "kp.h5", buf)
+    back = read_buffer(tmp_path / "kp.h5")
+    for name in ("kp_id", "kp_features", "kp_pixels", "kp_view", "kp_from_depth", "keypoint_xyz"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(buf, name), err_msg=name)
+
+
+def test_without_depth_only_track_observations_are_used(scene, encoder):
+    frames = read_scene_h5(scene).split("train")
+    kp, _ = _keypoints_on_surface(scene, frames)
+    buf = fill_buffer(frames, encoder, OPTS, keypoints=kp)
+    assert set(buf.view_image[buf.kp_view].tolist()) == {0} and not buf.kp_from_depth.any()
+
+
+def test_keypoint_feature_is_the_cell_feature_at_a_cell_centre():
+    from usvc.training.keypoint_obs import sample_features
+
+    fmap = torch.randn(16, 5, 7)
+    pixels = np.array([[8 * 3 + 4.5, 8 * 2 + 4.5], [4.5, 4.5]], dtype=np.float32)  # cells (2, 3), (0, 0)
+    out = sample_features(fmap, pixels)
+    torch.testing.assert_close(out[0], fmap[:, 2, 3])
+    torch.testing.assert_close(out[1], fmap[:, 0, 0])
+    mid = sample_features(fmap, np.array([[8.5, 4.5]], dtype=np.float32))[0]  # halfway between (0,0) and (0,1)
+    torch.testing.assert_close(mid, (fmap[:, 0, 0] + fmap[:, 0, 1]) / 2)

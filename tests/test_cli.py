@@ -34,8 +34,11 @@ def make_map(folder: Path, seed: int) -> tuple[Path, Path]:
     weights = folder / f"encoder{seed}.pt"
     torch.save(encoder.state_dict(), weights)
     map_path = folder / f"scene{seed}.map.pt"
+    # A map as the train stage writes it, with 3D keypoints for query-time refinement (a map
+    # without them still works, with one warning on stderr).
+    keypoints = np.random.default_rng(seed).uniform(-1.0, 1.0, (50, 3)) + [0.0, 0.0, 3.0]
     save_map(map_path, Regressor(encoder, Head(in_channels=encoder.out_channels, width=64)),
-             {"short_side": 120})
+             {"short_side": 120}, keypoints_xyz=keypoints)
     return map_path, weights
 
 
@@ -76,6 +79,14 @@ def test_localize_json_list(files: dict[str, Path]) -> None:
     assert proc.returncode == 0, proc.stderr
     records = json.loads(proc.stdout)
     assert isinstance(records, list) and len(records) == 1 and KEYS <= set(records[0])
+
+
+def test_localize_without_refinement(files: dict[str, Path]) -> None:
+    proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--no-refine",
+                "--focal", "130", files["photo"])
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads(proc.stdout)
+    assert record.get("refinement", {"iterations": 0})["iterations"] == 0
 
 
 @pytest.mark.parametrize("extra, photo, cause", [

@@ -11,6 +11,7 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -21,7 +22,14 @@ from scipy.spatial.transform import Rotation
 from conftest import REPO
 from usvc.errors import UsvcError
 from usvc.evaluation import write_poses_txt
-from usvc.evaluation.evaluate import PER_QUERY_COLUMNS, QueryStats, evaluate_poses, read_query_stats
+from usvc.evaluation.evaluate import (
+    PER_QUERY_COLUMNS,
+    QueryStats,
+    evaluate_initial_poses,
+    evaluate_poses,
+    read_query_stats,
+    read_refinement_records,
+)
 from usvc.evaluation.median_depth import median_scene_depth
 from usvc.evaluation.plots import error_cdf, principal_axes, write_plots
 from usvc.geometry import camera_centers
@@ -197,12 +205,76 @@ def test_unknown_stats_name_is_an_error():
         evaluate_poses(scene, _exact(scene), stats, median_depth=2.0)
 
 
-def _write_queries_h5(path: Path, stats: dict[str, QueryStats]) -> None:
+def _write_queries_h5(path: Path, stats: dict[str, QueryStats],
+                      initial: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+    """queries.h5 as the relocalize stage writes it; without `initial`, as it did before refinement."""
     with h5py.File(path, "w") as h5:
         h5.create_dataset("name", data=np.array(list(stats), dtype=object), dtype=h5py.string_dtype())
         h5["inliers"] = np.array([s.inliers for s in stats.values()], dtype=np.int64)
         h5["seconds"] = np.array([s.seconds for s in stats.values()], dtype=np.float64)
         h5["success"] = np.array([s.success for s in stats.values()], dtype=bool)
+        if initial is not None:
+            nan = (np.full((3, 3), np.nan), np.full(3, np.nan))
+            h5["initial_R"] = np.stack([initial.get(n, nan)[0] for n in stats])
+            h5["initial_t"] = np.stack([initial.get(n, nan)[1] for n in stats])
+            h5["refine_iterations"] = np.array([2 * (k % 2) for k in range(len(stats))], dtype=np.int64)
+            h5["refine_kept"] = np.array([k % 2 == 1 for k in range(len(stats))], dtype=bool)
+
+
+def _initial_poses(scene: Scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Pre-refinement poses: q02 off by 8 cm, q03 by 4 degrees, q05 missing (its dense solve failed)."""
+    initial = _exact(scene)
+    initial["q02.png"] = _moved(*initial["q02.png"], np.array([0.0, 0.08, 0.0]))
+    initial["q03.png"] = _rotated(*initial["q03.png"], deg=4.0)
+    del initial["q05.png"]
+    return initial
+
+
+def test_initial_poses_are_scored_like_the_final_ones(tmp_path):
+    scene = _scene(metric_scale=1.0)
+    stats = _stats(scene)
+    stats["q05.png"] = QueryStats(0, 0.05, False)
+    _write_queries_h5(tmp_path / "queries.h5", stats, _initial_poses(scene))
+    records = read_refinement_records(tmp_path / "queries.h5")
+    assert records is not None and records.names == list(stats)
+    assert records.initial_R.shape == (N_QUERIES, 3, 3) and np.isnan(records.initial_t[5]).all()
+    out = evaluate_initial_poses(scene, records, stats, median_depth=2.0)
+    n = N_QUERIES
+    assert out["initial_acc_5cm_5deg"] == pytest.approx((n - 2) / n)  # q02 (8 cm) and q05 (failed)
+    assert out["initial_acc_2cm_2deg"] == pytest.approx((n - 3) / n)  # and q03 (4 degrees)
+    assert out["initial_acc_10cm_5deg"] == pytest.approx((n - 1) / n)
+    assert out["initial_median_rot_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert "initial_median_trans_cm" in out and "initial_median_trans_rel" in out
+    assert not {"initial_median_depth", "initial_ms_per_query", "initial_n_queries"} & set(out)
+    # odd queries kept their refinement (2 iterations), even ones did not; q05 failed and is not counted
+    assert out["refine_kept_fraction"] == pytest.approx(3 / 7)
+    assert out["refine_mean_iterations"] == pytest.approx(6 / 7)
+    # the same machinery as the final poses: exact initial poses give the final figures
+    queries = scene.split("test")
+    exact = replace(records, initial_R=np.stack([f.R for f in queries]), initial_t=np.stack([f.t for f in queries]))
+    exact_initial = evaluate_initial_poses(scene, exact, stats, 2.0)
+    final, _ = evaluate_poses(scene, _exact(scene), stats, 2.0)
+    assert all(exact_initial[f"initial_{k}"] == pytest.approx(final[k]) for k in ("acc_5cm_5deg", "median_rot_deg"))
+
+
+def test_non_metric_initial_figures_skip_missing_values(tmp_path):
+    scene = _scene(metric_scale=None)
+    _write_queries_h5(tmp_path / "queries.h5", _stats(scene), _exact(scene))
+    records = read_refinement_records(tmp_path / "queries.h5")
+    out = evaluate_initial_poses(scene, records, _stats(scene), median_depth=2.0)
+    assert out["initial_acc_5deg_3pct"] == 1.0
+    assert "initial_acc_5cm_5deg" not in out and "initial_median_trans_cm" not in out
+    assert all(isinstance(v, (int, float)) for v in out.values())
+
+
+def test_old_queries_file_has_no_refinement_records(tmp_path):
+    scene = _scene()
+    _write_queries_h5(tmp_path / "queries.h5", _stats(scene))
+    assert read_refinement_records(tmp_path / "queries.h5") is None
+    with h5py.File(tmp_path / "queries.h5", "a") as h5:
+        h5["refine_kept"] = np.zeros(N_QUERIES, bool)
+    with pytest.raises(UsvcError, match="lacks dataset"):
+        read_refinement_records(tmp_path / "queries.h5")
 
 
 def test_query_stats_round_trip(tmp_path):
@@ -312,6 +384,22 @@ def test_stage_writes_metrics_and_plots(inputs):
     assert metrics["median_depth"] > 0
     for name in ("per_query.csv", "trans_cdf.csv", "rot_cdf.csv", "cdf.png", "trajectory.png"):
         assert (inputs / "results/mini/plots" / name).stat().st_size > 0, name
+    assert not any(k.startswith(("initial_", "refine_")) for k in metrics)  # a queries.h5 from before refinement
+
+
+def test_stage_scores_initial_poses_when_recorded(inputs):
+    scene = _scene(metric_scale=1.0)
+    initial = _initial_poses(scene)
+    _write_queries_h5(inputs / "data/mini/relocalize/queries.h5", _stats(scene, seconds=0.02), initial)
+    proc = _run_stage(inputs)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    metrics = json.loads((inputs / "results/mini/metrics.json").read_text())
+    n = N_QUERIES
+    assert metrics["acc_5cm_5deg"] == pytest.approx((n - 1) / n)  # the final poses, as before
+    assert metrics["initial_acc_5cm_5deg"] == pytest.approx((n - 2) / n)
+    assert metrics["initial_acc_2cm_2deg"] == pytest.approx((n - 3) / n)
+    assert metrics["refine_kept_fraction"] == pytest.approx(0.5)  # stats say every query succeeded
+    assert metrics["refine_mean_iterations"] == pytest.approx(1.0)
 
 
 def test_stage_multirun_leaves_the_tracked_results_alone(inputs):

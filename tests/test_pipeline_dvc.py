@@ -95,14 +95,15 @@ def test_relocalize_change_reruns_only_relocalize_and_metrics(repo):
     assert _status(repo) == set()
 
 
-def test_tau_change_reruns_only_keypoints(repo):
+def test_tau_change_reruns_keypoints_onward_only(repo):
     conf = repo / "conf/keypoints/default.yaml"
     before = json.loads((repo / "results/mini/keypoints.json").read_text())
     sfm_digest = _digest(repo / "data/mini/sfm/tracks.h5")
     conf.write_text(conf.read_text().replace("tau: 1.5", "tau: 2.0"))
     assert _status(repo) == {"keypoints@mini"}
     out = _run([sys.executable, "-m", "dvc", "repro"], repo).stdout
-    assert "Running stage 'keypoints@mini'" in out
+    for stage in ("keypoints@mini", "buffer@mini", "train@mini"):  # the buffer holds keypoint tuples
+        assert f"Running stage '{stage}'" in out
     for stage in ("generate", "prepare@mini", "sfm@mini"):
         assert f"Running stage '{stage}'" not in out
     after = json.loads((repo / "results/mini/keypoints.json").read_text())
@@ -122,4 +123,29 @@ def test_multirun_writes_own_dirs_and_prints_table(repo):
     table = proc.stdout
     assert "keypoints.tau=1.0" in table and "keypoints.tau=2.0" in table and "kept" in table
     assert (repo / "multirun/test/0_keypoints.tau=1.0/keypoints/keypoints.h5").is_file()
+    assert _status(repo) == set()
+
+
+def test_sweep_reruns_only_what_the_override_changes(repo):
+    """stages.sweep on a relocalize value: relocalize + metrics per job, on links to the DVC artifacts."""
+    tracked = _digest(repo / "data/mini/relocalize/poses.txt")
+    proc = _run([sys.executable, "-m", "stages.sweep", "--multirun", "relocalize.max_error_px=5,10",
+                 "hydra.sweep.dir=multirun/sweep"], repo)
+    jobs = sorted(p for p in (repo / "multirun/sweep").iterdir() if p.is_dir())
+    assert [j.name for j in jobs] == ["0_relocalize.max_error_px=5", "1_relocalize.max_error_px=10"]
+    for job in jobs:
+        metrics = json.loads((job / "metrics.json").read_text())
+        assert metrics["first_stage"] == "relocalize" and metrics["n_queries"] == 20
+        assert "acc_5cm_5deg" in metrics and "ms_per_query" in metrics and "train_seconds" not in metrics
+        assert {p.name for p in (job / "logs").iterdir()} == {"relocalize", "relocalize.log", "metrics", "metrics.log"}
+        data = job / "data/mini"
+        for upstream in ("prepared", "sfm", "keypoints", "buffer", "map"):
+            assert (data / upstream).is_symlink(), upstream
+            assert (data / upstream).resolve() == (repo / "data/mini" / upstream).resolve()
+        assert not (data / "relocalize").is_symlink() and (data / "relocalize/poses.txt").is_file()
+        assert (job / "results/mini/relocalize.json").is_file()
+    rows = [line for line in proc.stdout.splitlines() if line.startswith(("0 ", "1 ")) and " | " in line]
+    assert len(rows) == 2 and "relocalize.max_error_px=5" in rows[0] and "relocalize.max_error_px=10" in rows[1]
+    assert "acc_5cm_5deg" in proc.stdout and "ms_per_query" in proc.stdout
+    assert _digest(repo / "data/mini/relocalize/poses.txt") == tracked
     assert _status(repo) == set()

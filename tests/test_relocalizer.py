@@ -134,12 +134,17 @@ def test_outliers_lower_confidence(tiny_map: tuple[Path, Path], monkeypatch: pyt
 def test_to_json(tiny_map: tuple[Path, Path], exact: list) -> None:
     out = Relocalizer(*tiny_map).localize(photo(160, 120), WORK_CAMERA).to_json()
     assert set(out) == {"success", "inliers", "cells", "confidence", "seconds",
-                        "q_wxyz", "t", "camera_center"}
-    assert set(out["seconds"]) == {"preprocess", "network", "pnp", "total"}
+                        "q_wxyz", "t", "camera_center", "refinement"}
+    assert set(out["seconds"]) == {"preprocess", "network", "pnp", "refine", "total"}
+    # this map has no keypoints: no refinement, the initial pose is the returned one
+    assert out["refinement"]["iterations"] == 0 and out["refinement"]["kept"] is False
+    assert np.allclose(out["refinement"]["initial_t"], out["t"])
+    assert out["refinement"]["initial_q_wxyz"] == out["q_wxyz"]
     assert np.allclose(out["t"], T_TRUE, atol=1e-3)
     assert np.allclose(out["camera_center"], -R_TRUE.T @ T_TRUE, atol=1e-3)
     failed = PoseEstimate(False, np.full((3, 3), np.nan), np.full(3, np.nan), 3, 300).to_json()
     assert failed["confidence"] == 0.0 and "q_wxyz" not in failed and "t" not in failed
+    assert "refinement" not in failed
 
 
 def test_real_network_runs(tiny_map: tuple[Path, Path]) -> None:

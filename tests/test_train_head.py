@@ -69,7 +69,7 @@ def synthetic_buffer(n_points: int = 300, n_views: int = 12, dim: int = 32, seed
     return buf, pts, feats
 
 
-OPTS = TrainOptions(iterations=400, batch_size=512, lr=3e-3, head_width=128, threshold_start=20.0)
+OPTS = TrainOptions(iterations=400, batch_size=512, lr=3e-3, head_width=128, threshold_start=20.0, bundle_weight=0.0)
 
 
 def test_training_recovers_points_from_reprojection_alone():
@@ -86,22 +86,74 @@ def test_training_recovers_points_from_reprojection_alone():
 
 def test_training_is_deterministic_and_adabelief_runs():
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
-    short = TrainOptions(iterations=5, batch_size=64, head_width=32)
+    short = TrainOptions(iterations=5, batch_size=64, head_width=32, bundle_weight=0.0)
     a, _ = train_head(buf, 3.0, short)
     b, _ = train_head(buf, 3.0, short)
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
-    c, summary = train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, head_width=32,
+    c, summary = train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, head_width=32, bundle_weight=0.0,
                                                    optimizer="adabelief", lr=1e-4, schedule="constant"))
     assert np.isfinite(summary["final_loss"])
 
 
 @pytest.mark.parametrize("opts, depth, message", [
-    (TrainOptions(batch_size=10_000), 3.0, "fewer than one batch"),
+    (TrainOptions(batch_size=10_000, bundle_weight=0.0), 3.0, "fewer than one batch"),
     (TrainOptions(optimizer="sgd", batch_size=64), 3.0, "train.optimizer"),
-    (TrainOptions(batch_size=64), 0.0, "median scene depth"),
+    (TrainOptions(batch_size=64, bundle_weight=0.0), 0.0, "median scene depth"),
 ])
 def test_bad_training_input_is_named(opts, depth, message):
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
     with pytest.raises(UsvcError, match=message):
         train_head(buf, depth, opts)
+
+
+def with_keypoint_tuples(buf: TrainingBuffer, pts: np.ndarray, feats: np.ndarray, one_view_pixels: bool):
+    """Every point is a keypoint observed in every view; optionally keep each point's ordinary
+    pixel samples in one view only, where reprojection alone cannot tell its depth."""
+    n_views = len(buf.view_image)
+    n = len(pts)
+    point = np.tile(np.arange(n), n_views)
+    order = np.argsort(point, kind="stable")
+    buf.kp_id = point[order].astype(np.int32)
+    buf.kp_view = buf.view_index[order].copy()
+    buf.kp_pixels = buf.pixels[order].copy()
+    buf.kp_features = buf.features[order].copy()
+    buf.kp_from_depth = np.zeros(len(order), dtype=bool)
+    buf.keypoint_xyz = pts.astype(np.float32)
+    if one_view_pixels:
+        keep = buf.view_index == point % n_views
+        buf.features, buf.pixels, buf.view_index = buf.features[keep], buf.pixels[keep], buf.view_index[keep]
+    return buf
+
+
+def test_zero_bundle_weight_is_exactly_single_view_training():
+    buf, pts, feats = synthetic_buffer(n_points=50, n_views=4)
+    opts = TrainOptions(iterations=5, batch_size=64, head_width=32, bundle_weight=0.0)
+    a, _ = train_head(buf, 3.0, opts)
+    b, _ = train_head(with_keypoint_tuples(buf, pts, feats, one_view_pixels=False), 3.0, opts)
+    for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
+        torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
+
+
+def test_bundle_loss_recovers_depth_that_single_view_reprojection_leaves_open():
+    """Each point's pixel samples come from one view only: its depth along that ray is free under
+    L_pi. The keypoint tuples from the other views (bundle loss) pin it down."""
+    buf, pts, feats = synthetic_buffer(n_points=200, n_views=8)
+    buf = with_keypoint_tuples(buf, pts, feats, one_view_pixels=True)
+    errors = {}
+    for weight in (0.0, 1.0):
+        opts = TrainOptions(iterations=400, batch_size=128, lr=3e-3, head_width=128, threshold_start=20.0,
+                            bundle_weight=weight, bundle_groups_per_batch=32, bundle_obs_per_group=8)
+        head, summary = train_head(buf, 3.0, opts)
+        with torch.no_grad():
+            pred = head.forward_flat(torch.from_numpy(feats).float()).numpy()
+        errors[weight] = float(np.median(np.linalg.norm(pred - pts, axis=1)))
+    assert summary["bundle_groups"] == 200 and "final_bundle_reproj_median_px" in summary
+    assert errors[1.0] < 0.08, errors
+    assert errors[0.0] > 4 * errors[1.0], errors
+
+
+def test_bundle_weight_without_keypoint_tuples_is_refused():
+    buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
+    with pytest.raises(UsvcError, match="keypoint observations"):
+        train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, head_width=32, bundle_weight=1.0))

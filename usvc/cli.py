@@ -56,7 +56,7 @@ def _localize(args: argparse.Namespace) -> int:
 
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
-    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px)
+    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine)
     relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device)
     results = []
     for photo in args.photos:
@@ -95,6 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="RANSAC-PnP solver")
     loc.add_argument("--max-error-px", type=float, default=10.0,
                      help="RANSAC inlier threshold in pixels at a 480 px short side (scaled to the map's working size)")
+    loc.add_argument("--no-refine", action="store_true",
+                     help="skip keypoint-guided refinement (method=single); on by default when the map has keypoints")
     loc.add_argument("--device", default="cpu")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")

@@ -42,6 +42,7 @@ class SfmConfig:
     reconstruction: str = "auto"  # auto | triangulate | incremental
     min_points: int = 100
     num_threads: int = -1
+    seed: int = 0  # COLMAP's RANSAC seed; apart from the global seed so mapping seeds reuse the SfM
 
 
 @dataclass
@@ -74,6 +75,8 @@ class BufferConfig:
     brightness_max: float = 1.1
     contrast_min: float = 0.9
     contrast_max: float = 1.1
+    keypoint_obs_per_view: int = 1024  # cap on keypoint tuples stored per augmented view (0 = all)
+    depth_visibility_tol: float = 0.05  # a non-track keypoint is visible where |depth - z| < tol * z
 
 
 @dataclass
@@ -91,6 +94,11 @@ class TrainConfig:
     depth_max_rel: float = 500.0
     invalid_depth_rel: float = 5.0
     max_reproj_px: float = 1000.0
+    reproj_weight: float = 1.0  # lambda_pi (paper eq. 8)
+    bundle_weight: float = 1.0  # lambda_B (paper eq. 8); 0 = ACE-style single-view training
+    bundle_loss: str = "tanh"  # tanh (ACE's soft clamp, shares the threshold schedule) | squared (eq. 7 as printed)
+    bundle_groups_per_batch: int = 64  # whole keypoint groups mixed into every batch of pixel samples
+    bundle_obs_per_group: int = 16  # observations drawn per group (all of them when fewer)
 
 
 @dataclass
@@ -98,11 +106,17 @@ class RelocalizeConfig:
     backend: str = "opencv"  # opencv | pycolmap
     max_error_px: float = 10.0  # RANSAC inlier threshold at a 480 px short side, scaled to the working size
     min_inliers: int = 10
+    refine: bool = True  # keypoint-guided iterative refinement (paper 3.2.2)
+    refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
+    refine_max_iterations: int = 5  # T_max
+    refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median depth < delta
+    refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
 
 
 @dataclass
 class Config:
-    seed: int = 0
+    seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
+    method: str = "multiview"  # set by the method group: single | multiview
     data_dir: str = "data"
     results_dir: str = "results"
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -124,6 +138,8 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "train.optimizer": ("adamw", "adabelief"),
     "train.schedule": ("one_cycle", "constant"),
     "relocalize.backend": ("opencv", "pycolmap"),
+    "method": ("single", "multiview"),
+    "train.bundle_loss": ("tanh", "squared"),
 }
 _POSITIVE: tuple[str, ...] = (
     "scene.split_n", "sfm.max_num_features", "sfm.exhaustive_max_images", "sfm.sequential_overlap",
@@ -132,6 +148,9 @@ _POSITIVE: tuple[str, ...] = (
     "model.encoder_width", "model.head_width", "buffer.size", "buffer.samples_per_image", "buffer.scale_min",
     "buffer.scale_max", "buffer.brightness_min", "buffer.contrast_min", "train.iterations", "train.batch_size",
     "train.lr", "train.depth_min_rel", "relocalize.max_error_px", "relocalize.min_inliers",
+    "train.reproj_weight", "train.bundle_groups_per_batch", "train.bundle_obs_per_group",
+    "buffer.depth_visibility_tol", "relocalize.refine_radius_px", "relocalize.refine_max_iterations",
+    "relocalize.refine_delta", "relocalize.refine_min_correspondences",
 )
 
 
@@ -163,6 +182,8 @@ def validate(cfg: Any) -> None:
         raise ConfigError(f"config key train.warmup_fraction={cfg.train.warmup_fraction!r} must be in [0, 1)")
     if cfg.buffer.short_side < 0 or cfg.model.head_blocks < 0:
         raise ConfigError("config keys buffer.short_side and model.head_blocks must be >= 0")
+    if cfg.train.bundle_weight < 0 or cfg.buffer.keypoint_obs_per_view < 0:
+        raise ConfigError("config keys train.bundle_weight and buffer.keypoint_obs_per_view must be >= 0")
     if cfg.scene.metric_scale is not None and not cfg.scene.metric_scale > 0:
         raise ConfigError(f"config key scene.metric_scale={cfg.scene.metric_scale!r} must be > 0 or null")
 

@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.errors import UsvcError
+from usvc.evaluation.evaluate import refinement_summary
 from usvc.evaluation.pose_errors import write_poses_txt
 from usvc.relocalizer import PoseEstimate, Relocalizer
 from usvc.scene import Frame
@@ -42,11 +43,24 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
         h5["seconds"] = np.array([r.seconds["total"] for r in results])
         h5["network_seconds"] = np.array([r.seconds["network"] for r in results])
         h5["pnp_seconds"] = np.array([r.seconds["pnp"] for r in results])
+        h5["refine_seconds"] = np.array([r.seconds.get("refine", 0.0) for r in results])
+        # Refinement records: the dense RANSAC pose before refinement (NaN where it failed), so the
+        # metrics stage can score "refinement off" from the same run.
+        h5["refine_iterations"] = np.array([r.refine_iterations for r in results], dtype=np.int64)
+        h5["refine_kept"] = np.array([r.refine_kept for r in results], dtype=bool)
+        h5["initial_R"] = np.array([r.initial_R if r.success else np.full((3, 3), np.nan) for r in results],
+                                   dtype=np.float64).reshape(-1, 3, 3)
+        h5["initial_t"] = np.array([r.initial_t if r.success else np.full(3, np.nan) for r in results],
+                                   dtype=np.float64).reshape(-1, 3)
     records = {f.name: r.to_json() for f, r in zip(frames, results)}
     (out_dir / "queries.json").write_text(json.dumps(records, indent=1) + "\n")
     total = np.array([r.seconds["total"] for r in results])
+    refined = [results[i] for i in ok]  # refinement only runs where the dense solve succeeded
     return {"queries": len(frames), "failed": len(frames) - len(ok),
             "ms_per_query": float(total.mean() * 1000),
             "ms_network": float(np.mean([r.seconds["network"] for r in results]) * 1000),
             "ms_pnp": float(np.mean([r.seconds["pnp"] for r in results]) * 1000),
-            "median_inliers": float(np.median([r.inliers for r in results]))}
+            "ms_refine": float(np.mean([r.seconds.get("refine", 0.0) for r in results]) * 1000),
+            "median_inliers": float(np.median([r.inliers for r in results])),
+            **refinement_summary([r.refine_kept for r in refined], [r.refine_iterations for r in refined])}
+

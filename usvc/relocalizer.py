@@ -1,4 +1,5 @@
-"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose.
+"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose,
+then keypoint-guided refinement (paper §3.2.2) when the map carries 3D keypoints.
 
 This is the one implementation behind the relocalize stage, the Python API and `usvc localize`,
 so benchmark numbers and real use cannot drift apart.
@@ -22,8 +23,9 @@ from usvc.evaluation.pnp import BACKENDS, solve_pnp
 from usvc.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
 from usvc.model.errors import ModelError
-from usvc.model.head import Regressor, load_map, read_map_header
+from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
+from usvc.refinement import RefineOptions, refine_pose
 from usvc.scene import Camera
 from usvc.weights import encoder_weights_path
 
@@ -41,11 +43,32 @@ class RelocalizeOptions:
     reference_short_side: int = 480  # ACE's working short side, where its 10 px threshold was tuned
     min_inliers: int = 10
     seed: int = 0
+    refine: bool = True  # keypoint-guided refinement (paper 3.2.2); skipped for maps without keypoints
+    refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
+    refine_max_iterations: int = 5  # T_max
+    refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median depth < delta
+    refine_min_correspondences: int = 20  # fewer masked cells than this: stop refining
+
+    def refine_options(self) -> RefineOptions:
+        return RefineOptions(radius_px=self.refine_radius_px, max_iterations=self.refine_max_iterations,
+                             delta=self.refine_delta, min_correspondences=self.refine_min_correspondences)
+
+
+def _nan_R() -> np.ndarray:
+    return np.full((3, 3), np.nan)
+
+
+def _nan_t() -> np.ndarray:
+    return np.full(3, np.nan)
 
 
 @dataclass
 class PoseEstimate:
-    """World-to-camera pose (OpenCV axes, scene units); R and t are NaN when `success` is False."""
+    """World-to-camera pose (OpenCV axes, scene units); R and t are NaN when `success` is False.
+
+    `inliers` is the dense RANSAC inlier count of the returned pose; `initial_R`/`initial_t` are
+    the dense RANSAC pose before refinement (equal to R, t when refinement did not replace it).
+    """
 
     success: bool
     R: np.ndarray
@@ -53,6 +76,10 @@ class PoseEstimate:
     inliers: int
     cells: int
     seconds: dict[str, float] = field(default_factory=dict)
+    initial_R: np.ndarray = field(default_factory=_nan_R)
+    initial_t: np.ndarray = field(default_factory=_nan_t)
+    refine_iterations: int = 0
+    refine_kept: bool = False
 
     @property
     def confidence(self) -> float:
@@ -71,6 +98,9 @@ class PoseEstimate:
             out["q_wxyz"] = [float(v) for v in matrix_to_quat_wxyz(self.R)]
             out["t"] = [float(v) for v in self.t]
             out["camera_center"] = [float(v) for v in self.center]
+            out["refinement"] = {"iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
+                                 "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)],
+                                 "initial_t": [float(v) for v in self.initial_t]}
         return out
 
 
@@ -135,6 +165,14 @@ class Relocalizer:
         self.device = device
         self.short_side = int(self.metadata.get("short_side", 0)) or None
         self.map_path = Path(map_path)
+        self.keypoints_xyz = map_keypoints(header)
+        depth = self.metadata.get("median_depth")
+        self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
+            else 1.0
+        self.refine_options = self.options.refine_options()
+        self.refine = self.options.refine and self.keypoints_xyz is not None
+        if self.options.refine and self.keypoints_xyz is None:
+            log.warning("map %s has no 3D keypoints: keypoint-guided refinement is skipped", self.map_path)
 
     @torch.inference_mode()
     def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
@@ -163,6 +201,19 @@ class Relocalizer:
                            seed=self.options.seed, min_inliers=self.options.min_inliers,
                            backend=self.options.backend)
         t3 = time.perf_counter()
-        seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
-        return PoseEstimate(result.success, result.R, result.t, result.num_inliers, hc * wc, seconds)
+        R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
+        if result.success and self.refine:
+            assert self.keypoints_xyz is not None
+            ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
+                              max_error_px=threshold, median_depth=self.median_depth,
+                              options=self.refine_options, backend=self.options.backend,
+                              seed=self.options.seed, min_inliers=self.options.min_inliers)
+            iterations, kept = ref.iterations, ref.kept
+            if kept:
+                R, t, inliers = ref.R, ref.t, ref.final_inliers
+        t4 = time.perf_counter()
+        seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
+                   "total": t4 - t0}
+        return PoseEstimate(result.success, R, t, inliers, hc * wc, seconds, initial_R=result.R.copy(),
+                            initial_t=result.t.copy(), refine_iterations=iterations, refine_kept=kept)
 

@@ -8,7 +8,7 @@ plots and failure analysis need no second pass over the inputs.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -111,3 +111,78 @@ def evaluate_poses(
         for i, f in enumerate(queries)
     ]
     return summary, rows
+
+
+REFINEMENT_DATASETS: tuple[str, ...] = ("initial_R", "initial_t", "refine_iterations", "refine_kept")
+
+
+@dataclass(frozen=True)
+class RefinementRecords:
+    """Per-query refinement records of `queries.h5`: the dense pose before refinement and what it did."""
+
+    names: list[str]
+    success: np.ndarray  # (Q,) bool
+    initial_R: np.ndarray  # (Q,3,3), NaN for failed queries
+    initial_t: np.ndarray  # (Q,3)
+    iterations: np.ndarray  # (Q,) int
+    kept: np.ndarray  # (Q,) bool
+
+
+def read_refinement_records(path: Path | str) -> RefinementRecords | None:
+    """The refinement datasets of `queries.h5`, or None for a file written before refinement existed."""
+    path = Path(path)
+    if not path.is_file():
+        raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
+    with h5py.File(path, "r") as h5:
+        present = [k for k in REFINEMENT_DATASETS if k in h5]
+        if not present:
+            return None
+        missing = [k for k in ("name", "success", *REFINEMENT_DATASETS) if k not in h5]
+        if missing:
+            raise UsvcError(f"{path}: has refinement records but lacks dataset(s) {missing}")
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
+        rec = RefinementRecords(names, np.asarray(h5["success"][()], bool),
+                                np.asarray(h5["initial_R"][()], np.float64),
+                                np.asarray(h5["initial_t"][()], np.float64),
+                                np.asarray(h5["refine_iterations"][()], np.int64),
+                                np.asarray(h5["refine_kept"][()], bool))
+    q = len(names)
+    shapes = {"success": (rec.success.shape, (q,)), "initial_R": (rec.initial_R.shape, (q, 3, 3)),
+              "initial_t": (rec.initial_t.shape, (q, 3)), "refine_iterations": (rec.iterations.shape, (q,)),
+              "refine_kept": (rec.kept.shape, (q,))}
+    for key, (got, want) in shapes.items():
+        if got != want:
+            raise UsvcError(f"{path}: dataset {key} has shape {got}, expected {want} for {q} queries")
+    return rec
+
+
+def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[int] | np.ndarray) -> dict[str, float]:
+    """refine_kept_fraction and refine_mean_iterations over the given (successful) queries; 0 if none."""
+    return {"refine_kept_fraction": float(np.mean(kept)) if len(kept) else 0.0,
+            "refine_mean_iterations": float(np.mean(iterations)) if len(iterations) else 0.0}
+
+
+def _is_headline(key: str, value: object) -> bool:
+    """Accuracy and median-error figures with a number: what differs between initial and refined poses."""
+    numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return numeric and (key.startswith("acc_") or (key.startswith("median_") and key != "median_depth"))
+
+
+def evaluate_initial_poses(
+    scene: Scene,
+    records: RefinementRecords,
+    query_stats: Mapping[str, QueryStats],
+    median_depth: float | None,
+) -> dict[str, float | int]:
+    """Headline figures of the pre-refinement poses, prefixed "initial_", plus the refinement rates.
+
+    Scored by `evaluate_poses` against the same queries and failures as the returned poses, so
+    `acc_5cm_5deg` vs `initial_acc_5cm_5deg` is the refinement on/off ablation from one run.
+    """
+    ok = records.success & np.isfinite(records.initial_R).all(axis=(1, 2)) & np.isfinite(records.initial_t).all(axis=1)
+    estimates = {n: (records.initial_R[i], records.initial_t[i]) for i, n in enumerate(records.names) if ok[i]}
+    summary, _ = evaluate_poses(scene, estimates, query_stats, median_depth)
+    out: dict[str, float | int] = {f"initial_{k}": v for k, v in summary.items()
+                                   if v is not None and _is_headline(k, v)}
+    out.update(refinement_summary(records.kept[records.success], records.iterations[records.success]))
+    return out

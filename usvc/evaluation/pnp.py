@@ -82,6 +82,50 @@ def _reprojection_inliers(
     return (depth > 0) & (err < max_error_px)
 
 
+def project_points(
+    camera: Camera, points3d: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N,2) COLMAP-convention pixels and (N,) camera depths of world points under (R, t).
+
+    Public so refinement and inlier counting project exactly as the solver's inlier test does
+    (same intrinsics and distortion); pixels of points behind the camera are meaningless.
+    """
+    p3 = np.ascontiguousarray(np.asarray(points3d, dtype=np.float64).reshape(-1, 3))
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    if len(p3) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    K, dist = _opencv_intrinsics(camera)
+    rvec, _ = cv2.Rodrigues(R)
+    proj, _ = cv2.projectPoints(p3, rvec, t, K, dist)
+    return proj.reshape(-1, 2) + 0.5, p3 @ R[2] + t[2]
+
+
+def reprojection_inliers(
+    camera: Camera, points2d: np.ndarray, points3d: np.ndarray, R: np.ndarray, t: np.ndarray,
+    max_error_px: float,
+) -> np.ndarray:
+    """(N,) bool: finite correspondences in front of the camera that reproject within max_error_px.
+
+    The same test `solve_pnp` ("opencv") uses to pick inliers, so counts from different poses
+    (e.g. before and after refinement) are comparable.
+    """
+    p2 = np.asarray(points2d, dtype=np.float64).reshape(-1, 2)
+    p3 = np.asarray(points3d, dtype=np.float64).reshape(-1, 3)
+    if len(p2) != len(p3):
+        raise UsvcError(f"reprojection_inliers: {len(p2)} pixels but {len(p3)} points")
+    mask = np.zeros(len(p2), dtype=bool)
+    finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
+    if not (finite.any() and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        return mask
+    K, dist = _opencv_intrinsics(camera)
+    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
+    tvec = np.asarray(t, dtype=np.float64).reshape(3, 1)
+    mask[finite] = _reprojection_inliers(np.ascontiguousarray(p3[finite]), p2[finite] - 0.5, K, dist, rvec, tvec,
+                                         max_error_px)
+    return mask
+
+
 def _solve_opencv(
     p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int, min_inliers: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

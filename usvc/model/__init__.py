@@ -9,7 +9,16 @@ from usvc.model.encoder import (
     load_encoder_weights,
 )
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, homogeneous_scale, load_head, load_map, save_map
+from usvc.model.head import (
+    Head,
+    Regressor,
+    homogeneous_scale,
+    load_head,
+    load_map,
+    map_keypoints,
+    read_map_header,
+    save_map,
+)
 from usvc.model.preprocess import resize_to_short_side, to_network_input
 
 __all__ = [
@@ -25,6 +34,8 @@ __all__ = [
     "load_encoder_weights",
     "load_head",
     "load_map",
+    "map_keypoints",
+    "read_map_header",
     "resize_to_short_side",
     "save_map",
     "to_network_input",

@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -187,10 +188,20 @@ def _check_plain(value: object, where: str) -> None:
     raise ModelError(f"map metadata {where} is a {type(value).__name__}; use plain types")
 
 
-def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]) -> None:
-    """Write the head (fp16 weights, fp32 centre), the encoder's identity and `metadata`."""
+def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any],
+             keypoints_xyz: np.ndarray | None = None) -> None:
+    """Write the head (fp16 weights, fp32 centre), the encoder's identity and `metadata`.
+
+    `keypoints_xyz` (K,3), when given, are the scene's kept 3D keypoints, stored as fp32 under
+    "keypoints_xyz": query-time refinement projects them to pick reliable cells, so the map
+    file alone is enough to relocalize with it.
+    """
     metadata = dict(metadata)
     _check_plain(metadata, "metadata")
+    keypoints = None
+    if keypoints_xyz is not None:
+        keypoints = torch.as_tensor(np.asarray(keypoints_xyz, dtype=np.float32)).clone()
+        _check_keypoints(keypoints, Path(path))
     head = regressor.head
     state = {}
     for key, tensor in head.state_dict().items():
@@ -208,6 +219,8 @@ def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]
         },
         "metadata": metadata,
     }
+    if keypoints is not None:
+        payload["keypoints_xyz"] = keypoints
     with atomic_file(Path(path)) as tmp:
         torch.save(payload, tmp)
     log.info("saved map %s", path)
@@ -233,7 +246,28 @@ def read_map_header(path: str | Path) -> dict[str, Any]:
     for key in ("head_config", "head_state", "encoder", "metadata"):
         if not isinstance(payload.get(key), dict):
             raise ModelError(f"{path}: map file has no valid '{key}' entry")
+    if "keypoints_xyz" in payload:
+        _check_keypoints(payload["keypoints_xyz"], path)
     return payload
+
+
+def _check_keypoints(value: object, path: Path) -> None:
+    """A (K,3) finite float tensor, or a one-line ModelError naming the file."""
+    if not isinstance(value, torch.Tensor):
+        raise ModelError(f"{path}: map keypoints_xyz is a {type(value).__name__}, expected a (K,3) tensor")
+    if value.ndim != 2 or value.shape[1] != 3 or not value.is_floating_point():
+        raise ModelError(f"{path}: map keypoints_xyz must be a (K,3) float tensor, "
+                         f"got {value.dtype} {tuple(value.shape)}")
+    if not bool(torch.isfinite(value).all()):
+        raise ModelError(f"{path}: map keypoints_xyz has non-finite values")
+
+
+def map_keypoints(payload: Mapping[str, Any]) -> np.ndarray | None:
+    """The map's 3D keypoints as float64 (K,3) from a `read_map_header` payload, or None if it has none."""
+    value = payload.get("keypoints_xyz")
+    if value is None:
+        return None
+    return value.detach().cpu().double().numpy().reshape(-1, 3)
 
 
 def load_head(path: str | Path, encoder_fp: str) -> tuple[Head, dict[str, Any]]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -23,6 +23,7 @@ from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.preprocess import luma01, normalise
 from usvc.scene import Frame
 from usvc.training.augment import augment
+from usvc.training.keypoint_obs import SceneKeypoints, sample_features, view_observations
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,8 @@ class BufferOptions:
     brightness: tuple[float, float] = (0.9, 1.1)
     contrast: tuple[float, float] = (0.9, 1.1)
     seed: int = 0
+    keypoint_obs_per_view: int = 1024  # 0 = every keypoint the view sees
+    depth_visibility_tol: float = 0.05
 
 
 @dataclass
@@ -50,6 +53,18 @@ class TrainingBuffer:
     view_t: np.ndarray  # (V, 3)
     view_K: np.ndarray  # (V, 3, 3)
     image_names: list[str]
+    # Keypoint tuples (k, d_k, view -> (R_i, t_i, K_i), u_obs), sorted by keypoint id so that the
+    # observations of one keypoint (a bundle-loss group) are contiguous.
+    kp_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  # (P,)
+    kp_features: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float16))  # (P, C)
+    kp_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # (P, 2)
+    kp_view: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  # (P,)
+    kp_from_depth: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (P,) not from the SfM track
+    keypoint_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))  # (K, 3)
+
+    @property
+    def has_keypoints(self) -> bool:
+        return len(self.kp_id) > 0
 
 
 def _check_pinhole(frame: Frame) -> None:
@@ -77,13 +92,24 @@ def _valid_cells(mask: np.ndarray, h_cells: int, w_cells: int) -> np.ndarray:
 
 
 @torch.inference_mode()
-def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu") -> TrainingBuffer:
-    """Repeated passes over the mapping images with fresh augmentation until `opts.size` cells."""
+def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu",
+                keypoints: SceneKeypoints | None = None,
+                depths: list[np.ndarray | None] | None = None) -> TrainingBuffer:
+    """Repeated passes over the mapping images with fresh augmentation until `opts.size` cells.
+
+    With `keypoints`, every view also stores the tuples of the keypoints it sees (`depths`, one per
+    frame or None, let points off their tracks count where depth confirms them). Their subsampling
+    draws from its own generator, so the pixel samples are the same with or without keypoints.
+    """
     if not frames:
         raise UsvcError("the training buffer needs at least one mapping image")
     for f in frames:
         _check_pinhole(f)
+    if depths is not None and len(depths) != len(frames):
+        raise UsvcError(f"got {len(depths)} depth maps for {len(frames)} mapping images")
     rng = np.random.default_rng(opts.seed)
+    kp_rng = np.random.default_rng([opts.seed, 1])
+    kp_parts: dict[str, list] = {"id": [], "features": [], "pixels": [], "view": [], "from_depth": []}
     encoder = encoder.to(device).eval()
     feats, pixels, view_idx = [], [], []
     views: dict[str, list] = {"image": [], "R": [], "t": [], "K": []}
@@ -109,6 +135,18 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
                 centres = cell_centers(h, w, "colmap").reshape(2, -1)[:, sel].T
                 pixels.append(centres.numpy().astype(np.float32))
                 view_idx.append(np.full(take, len(views["image"]), dtype=np.int32))
+                if keypoints is not None:
+                    ids, uv, from_depth = view_observations(
+                        keypoints, frame.name, view, frame.R, frame.t, frame.camera.K,
+                        None if depths is None else depths[i], opts.depth_visibility_tol)
+                    if 0 < opts.keypoint_obs_per_view < len(ids):
+                        pick = np.sort(kp_rng.choice(len(ids), opts.keypoint_obs_per_view, replace=False))
+                        ids, uv, from_depth = ids[pick], uv[pick], from_depth[pick]
+                    kp_parts["id"].append(ids.astype(np.int32))
+                    kp_parts["features"].append(sample_features(out, uv).to(torch.float16).cpu().numpy())
+                    kp_parts["pixels"].append(uv)
+                    kp_parts["view"].append(np.full(len(ids), len(views["image"]), dtype=np.int32))
+                    kp_parts["from_depth"].append(from_depth)
                 views["image"].append(i)
                 views["R"].append(view.R_w2c)
                 views["t"].append(view.t_w2c)
@@ -118,12 +156,25 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
                 if count >= opts.size:
                     break
     log.info("buffer: %d cells from %d augmented views (planned about %d)", count, len(views["image"]), n_views)
-    return TrainingBuffer(
+    buf = TrainingBuffer(
         features=np.concatenate(feats), pixels=np.concatenate(pixels), view_index=np.concatenate(view_idx),
         view_image=np.asarray(views["image"], dtype=np.int32), view_R=np.stack(views["R"]).astype(np.float32),
         view_t=np.stack(views["t"]).astype(np.float32), view_K=np.stack(views["K"]).astype(np.float32),
         image_names=[f.name for f in frames],
     )
+    if keypoints is not None:
+        ids = np.concatenate(kp_parts["id"])
+        if len(ids) == 0:
+            raise UsvcError("no kept keypoint is observed in any buffer view: check the keypoints stage's "
+                            "output against the prepared mapping images")
+        order = np.argsort(ids, kind="stable")
+        buf.kp_id, buf.kp_pixels = ids[order], np.concatenate(kp_parts["pixels"])[order]
+        buf.kp_features = np.concatenate(kp_parts["features"])[order]
+        buf.kp_view, buf.kp_from_depth = np.concatenate(kp_parts["view"])[order], np.concatenate(kp_parts["from_depth"])[order]
+        buf.keypoint_xyz = keypoints.xyz.astype(np.float32)
+        log.info("buffer: %d keypoint observations of %d keypoints (%.1f %% from depth visibility)", len(ids),
+                 len(np.unique(ids)), 100 * buf.kp_from_depth.mean())
+    return buf
 
 
 def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) -> None:
@@ -136,6 +187,12 @@ def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) ->
         views["image"], views["R_world_to_cam"], views["t_world_to_cam"], views["K"] = (
             buf.view_image, buf.view_R, buf.view_t, buf.view_K)
         h5.create_dataset("image_names", data=np.array(buf.image_names, dtype=object), dtype=h5py.string_dtype())
+        if buf.has_keypoints:
+            kp = h5.create_group("keypoints")
+            kp.create_dataset("features", data=buf.kp_features,
+                              chunks=(min(len(buf.kp_features), 4096), buf.kp_features.shape[1]))
+            kp["id"], kp["pixels"], kp["view"], kp["from_depth"] = buf.kp_id, buf.kp_pixels, buf.kp_view, buf.kp_from_depth
+            kp["xyz"] = buf.keypoint_xyz
 
 
 def read_buffer_attrs(path: Path) -> dict:
@@ -148,9 +205,14 @@ def read_buffer(path: Path) -> TrainingBuffer:
     if not path.is_file():
         raise UsvcError(f"training buffer not found: {path}")
     with h5py.File(path, "r") as h5:
-        return TrainingBuffer(
+        buf = TrainingBuffer(
             features=h5["features"][()], pixels=h5["pixels"][()], view_index=h5["view_index"][()],
             view_image=h5["views/image"][()], view_R=h5["views/R_world_to_cam"][()],
             view_t=h5["views/t_world_to_cam"][()], view_K=h5["views/K"][()],
             image_names=[n.decode() if isinstance(n, bytes) else n for n in h5["image_names"][()]],
         )
+        if "keypoints" in h5:
+            kp = h5["keypoints"]
+            buf.kp_id, buf.kp_features, buf.kp_pixels = kp["id"][()], kp["features"][()], kp["pixels"][()]
+            buf.kp_view, buf.kp_from_depth, buf.keypoint_xyz = kp["view"][()], kp["from_depth"][()], kp["xyz"][()]
+    return buf

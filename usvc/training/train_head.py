@@ -22,6 +22,8 @@ from usvc.geometry import camera_centers
 from usvc.model.head import Head
 from usvc.training.adabelief import AdaBelief
 from usvc.training.buffer import TrainingBuffer
+from usvc.training.bundle_loss import FORMS, bundle_loss
+from usvc.training.group_sampler import GroupSampler
 from usvc.training.reprojection_loss import reprojection_loss
 from usvc.training.schedule import circle_threshold
 
@@ -48,6 +50,12 @@ def validate_options(opts: TrainOptions) -> None:
         problems.append(f"train.schedule={opts.schedule!r} (expected one of {SCHEDULES})")
     if opts.iterations < 1 or opts.batch_size < 1:
         problems.append("train.iterations and train.batch_size must be >= 1")
+    if opts.bundle_loss not in FORMS:
+        problems.append(f"train.bundle_loss={opts.bundle_loss!r} (expected one of {FORMS})")
+    if opts.bundle_weight < 0 or opts.reproj_weight <= 0:
+        problems.append("train.bundle_weight must be >= 0 and train.reproj_weight > 0")
+    if opts.bundle_groups_per_batch < 1 or opts.bundle_obs_per_group < 1:
+        problems.append("train.bundle_groups_per_batch and train.bundle_obs_per_group must be >= 1")
     if not 0 < opts.depth_min_rel < opts.invalid_depth_rel < opts.depth_max_rel:
         problems.append("need 0 < train.depth_min_rel < train.invalid_depth_rel < train.depth_max_rel")
     if problems:
@@ -84,6 +92,16 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
     if n < opts.batch_size:
         raise UsvcError(f"the buffer has {n} cells, fewer than one batch ({opts.batch_size}); "
                         "raise buffer.size or lower train.batch_size")
+    sampler = None
+    if opts.bundle_weight > 0:
+        if not buf.has_keypoints:
+            raise UsvcError("train.bundle_weight > 0 (method=multiview) needs keypoint observations in the "
+                            "buffer; rebuild it with the buffer stage, or use method=single")
+        try:
+            sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch,
+                                   opts.bundle_obs_per_group, np.random.default_rng([opts.seed, 2]))
+        except ValueError as exc:
+            raise UsvcError(f"bundle loss: {exc}") from exc
     torch.manual_seed(opts.seed)
     gen = torch.Generator().manual_seed(opts.seed)
     head = Head(in_channels=buf.features.shape[1], width=opts.head_width, num_blocks=opts.head_blocks)
@@ -100,6 +118,12 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
     depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
     invalid_depth = opts.invalid_depth_rel * median_depth
 
+    if sampler is not None:
+        kp_feats = torch.from_numpy(buf.kp_features)
+        kp_pixels = torch.from_numpy(buf.kp_pixels).float()
+        kp_view = torch.from_numpy(buf.kp_view.astype(np.int64))
+    bundle_history: list[tuple[float, float]] = []
+
     optim, sched = _optimizer(opts, head.parameters())
     order = torch.randperm(n, generator=gen)
     cursor, epochs = 0, 0
@@ -113,19 +137,32 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
         cursor += opts.batch_size
         v = view[idx]
         x = feats[idx].to(device=device, dtype=torch.float32)
+        if sampler is not None:
+            rows, sizes = sampler.next()
+            rows_t = torch.from_numpy(rows)
+            x = torch.cat([x, kp_feats[rows_t].to(device=device, dtype=torch.float32)])
         pred = head.forward_flat(x)
         tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
-        loss, stats = reprojection_loss(
-            pred, pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
+        pix_loss, stats = reprojection_loss(
+            pred[:len(idx)], pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
             Kinv[v].to(device), tau, depth_min=depth_min, depth_max=depth_max,
             max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
+        loss = opts.reproj_weight * pix_loss
+        if sampler is not None:
+            kv = kp_view[rows_t]
+            b_loss, b_stats = bundle_loss(
+                pred[len(idx):], torch.from_numpy(sizes), kp_pixels[rows_t].to(device), Rv[kv].to(device),
+                tv[kv].to(device), Kv[kv].to(device), Kinv[kv].to(device), tau, form=opts.bundle_loss,
+                depth_min=depth_min, depth_max=depth_max, invalid_depth=invalid_depth, max_reproj=opts.max_reproj_px)
+            loss = loss + opts.bundle_weight * b_loss
+            bundle_history.append((float(b_loss.detach()), float(b_stats["reproj_median"])))
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
         sched.step()
         if not torch.isfinite(loss):
             raise UsvcError(f"training diverged at iteration {it} (loss {float(loss)}); lower train.lr")
-        history.append((float(loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
+        history.append((float(pix_loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
         if it % 50 == 0:
             bar.set_postfix(loss=f"{history[-1][0]:.2f}", valid=f"{history[-1][1]:.2f}",
                             px=f"{history[-1][2]:.1f}", tau=f"{tau:.1f}")
@@ -143,7 +180,18 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
         "samples_per_second": opts.iterations * opts.batch_size / seconds,
         "median_depth": float(median_depth),
         "loss_curve": [float(np.mean([h[0] for h in history[i:i + 100]])) for i in range(0, len(history), 100)],
+        "bundle_weight": opts.bundle_weight,
     }
+    if sampler is not None:
+        btail = np.array(bundle_history[-max(1, len(bundle_history) // 20):])
+        summary.update({
+            "bundle_groups": sampler.num_groups,
+            "bundle_group_epochs": round(opts.iterations * sampler.groups_per_batch / sampler.num_groups, 2),
+            "final_bundle_loss": float(btail[:, 0].mean()),
+            "final_bundle_reproj_median_px": float(np.nanmean(btail[:, 1])),
+            "bundle_loss_curve": [float(np.mean([h[0] for h in bundle_history[i:i + 100]]))
+                                  for i in range(0, len(bundle_history), 100)],
+        })
     log.info("trained head: %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
              opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
              summary["final_reproj_median_px"])

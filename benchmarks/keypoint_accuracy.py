@@ -1,0 +1,60 @@
+"""How well a map predicts its scene keypoints: the diagnostic behind single vs multiview.
+
+The bundle loss exists to put the coordinate predicted from a keypoint's feature at the
+keypoint's triangulated position X_k (multi-view), where the reprojection loss only constrains
+it to the observing ray. This reads the buffer's keypoint tuples (k, d_k, view, u_obs), runs a
+map's head on d_k, and prints, per map, the 3D error |y - X_k| (in units of the median scene
+depth) and the reprojection error into the observing view (px), medians and 90th percentiles.
+Run: python benchmarks/keypoint_accuracy.py --buffer data/mini/buffer/buffer.h5 MAP [MAP ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from usvc.relocalizer import Relocalizer  # noqa: E402
+from usvc.training.buffer import read_buffer  # noqa: E402
+
+
+@torch.inference_mode()
+def keypoint_errors(map_path: Path, buffer_path: Path) -> dict[str, float]:
+    buf = read_buffer(buffer_path)
+    if not buf.has_keypoints:
+        raise SystemExit(f"{buffer_path} holds no keypoint tuples")
+    reloc = Relocalizer(map_path)
+    head = reloc.regressor.head
+    pred = np.concatenate([head.forward_flat(torch.from_numpy(buf.kp_features[i:i + 65536]).float()).double().numpy()
+                           for i in range(0, len(buf.kp_features), 65536)])
+    X = buf.keypoint_xyz[buf.kp_id].astype(np.float64)
+    depth = float(reloc.metadata.get("median_depth", 1.0))
+    err3d = np.linalg.norm(pred - X, axis=1) / depth
+    v = buf.kp_view
+    cam = np.einsum("nij,nj->ni", buf.view_R[v], pred) + buf.view_t[v]
+    uv = np.einsum("nij,nj->ni", buf.view_K[v], cam)
+    front = cam[:, 2] > 1e-6
+    reproj = np.full(len(pred), np.inf)
+    reproj[front] = np.linalg.norm(uv[front, :2] / uv[front, 2:] - buf.kp_pixels[front], axis=1)
+    return {"map": str(map_path), "method": reloc.metadata.get("method", "?"), "observations": int(len(pred)),
+            "err3d_rel_median": float(np.median(err3d)), "err3d_rel_p90": float(np.percentile(err3d, 90)),
+            "reproj_px_median": float(np.median(reproj)), "reproj_px_p90": float(np.percentile(reproj, 90))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--buffer", type=Path, required=True)
+    parser.add_argument("maps", type=Path, nargs="+")
+    args = parser.parse_args()
+    for m in args.maps:
+        print(json.dumps(keypoint_errors(m, args.buffer)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
