@@ -1,0 +1,54 @@
+"""Training cost of the bundle loss: seconds per iteration, single vs multiview, same buffer.
+
+Times `train_head` for a few hundred iterations on a real buffer with keypoint tuples, once with
+train.bundle_weight=0 (method=single) and once with the configured bundle sampling, and prints
+seconds per iteration, the ratio and the projected time of a full run. Run it on an otherwise
+idle machine: python benchmarks/mapping_cost.py --buffer data/mini/buffer/buffer.h5 [--iterations 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from usvc.config import register_configs  # noqa: E402
+from usvc.training.buffer import read_buffer  # noqa: E402
+from usvc.training.train_head import TrainOptions, train_head  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--buffer", type=Path, required=True)
+    parser.add_argument("--iterations", type=int, default=300)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    register_configs()
+    with initialize_config_dir(version_base=None, config_dir=str(ROOT / "conf")):
+        cfg = compose("config")
+    buf = read_buffer(args.buffer)
+    full = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks)
+    rows = {}
+    for method, weight in (("single", 0.0), ("multiview", full.bundle_weight or 1.0)):
+        opts = replace(full, iterations=args.iterations, bundle_weight=weight)
+        t0 = time.perf_counter()
+        train_head(buf, 1.0, opts)
+        per_it = (time.perf_counter() - t0) / args.iterations
+        rows[method] = {"seconds_per_iteration": per_it, "projected_full_run_s": per_it * full.iterations}
+    rows["multiview_over_single"] = rows["multiview"]["seconds_per_iteration"] / rows["single"]["seconds_per_iteration"]
+    print(json.dumps({"threads": args.threads, "iterations": args.iterations, **rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
