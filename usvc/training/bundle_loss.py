@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from usvc.training.reprojection_loss import reprojection_loss
+from usvc.training.reprojection_loss import project_samples, reprojection_loss
 
 FORMS = ("tanh", "squared")
 
@@ -36,13 +36,9 @@ def group_pairs(group_sizes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def _squared(pred: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor,
              K_inv: torch.Tensor, depth_min: float, depth_max: float, invalid_depth: float) -> tuple[torch.Tensor, dict]:
-    p = torch.einsum("nij,nj->ni", R, pred.float()) + t
-    z = p[:, 2]
-    h = torch.einsum("nij,nj->ni", K, p)
-    err2 = ((h[:, :2] / z.clamp(min=depth_min)[:, None] - pixels) ** 2).sum(dim=1)
+    z, proj, invalid = project_samples(pred.float(), pixels, R, t, K, K_inv, depth_min, invalid_depth)
+    err2 = ((proj - pixels) ** 2).sum(dim=1)
     valid = (z >= depth_min) & (z <= depth_max)
-    uv1 = torch.cat([pixels, torch.ones_like(pixels[:, :1])], dim=1)
-    invalid = (p - invalid_depth * torch.einsum("nij,nj->ni", K_inv, uv1)).abs().sum(dim=1)
     loss = torch.where(valid, err2, invalid).mean()
     with torch.no_grad():
         err = err2.sqrt()

@@ -19,6 +19,21 @@ from __future__ import annotations
 import torch
 
 
+def project_samples(X: torch.Tensor, uv: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor,
+                    K_inv: torch.Tensor, depth_min: float,
+                    invalid_depth: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per sample: camera depth z, the projection (depth clamped to depth_min), and the invalid-
+    prediction term |p - invalid_depth * K^-1 [u, v, 1]|_1 that pulls bad points onto the ray.
+    Shared by every loss form, so they all treat points behind the camera the same way."""
+    p = torch.einsum("nij,nj->ni", R, X) + t
+    z = p[:, 2]
+    h = torch.einsum("nij,nj->ni", K, p)  # h[:, 2] == z: K's last row is [0, 0, 1]
+    proj = h[:, :2] / h[:, 2:3].clamp(min=depth_min)
+    uv1 = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=1)
+    invalid = (p - invalid_depth * torch.einsum("nij,nj->ni", K_inv, uv1)).abs().sum(dim=1)
+    return z, proj, invalid
+
+
 def reprojection_loss(
     pred_xyz_world: torch.Tensor,
     pixels: torch.Tensor,
@@ -62,18 +77,10 @@ def reprojection_loss(
         Kinv = K_inv.to(dtype)
         tau = threshold.to(dtype) if isinstance(threshold, torch.Tensor) else threshold
 
-        p = torch.einsum("nij,nj->ni", R, X) + t
-        z = p[:, 2]
-        h = torch.einsum("nij,nj->ni", Kf, p)  # h[:, 2] == z: K's last row is [0, 0, 1]
-        proj = h[:, :2] / h[:, 2:3].clamp(min=depth_min)
+        z, proj, invalid_loss = project_samples(X, uv, R, t, Kf, Kinv, depth_min, invalid_depth)
         err = (proj - uv).abs().sum(dim=1)
-
         valid = (z >= depth_min) & (z <= depth_max) & (err <= max_reproj)
-
         valid_loss = tau * torch.tanh(err / tau)
-        uv1 = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=1)
-        target = invalid_depth * torch.einsum("nij,nj->ni", Kinv, uv1)
-        invalid_loss = (p - target).abs().sum(dim=1)
 
         per_sample = torch.where(valid, valid_loss, invalid_loss)
         loss = per_sample.sum() / max(n, 1)
