@@ -9,6 +9,7 @@ from omegaconf import DictConfig
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
 from usvc.scene_io import read_depth, read_scene_h5
+from usvc.splat.render_io import read_rendered_views
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.training.buffer import BufferOptions, fill_buffer, write_buffer
 from usvc.training.keypoint_obs import read_scene_keypoints
@@ -28,6 +29,11 @@ def main(cfg: DictConfig) -> None:
     index = {f.name: i for i, f in enumerate(scene.frames)}
     depths = [read_depth(paths.prepared, index[f.name]) for f in frames]
     keypoints = read_scene_keypoints(paths.keypoints / "keypoints.h5")
+    n_rendered = 0
+    if cfg.buffer.rendered_views:
+        rendered, observations = read_rendered_views(paths.render)
+        frames, depths, n_rendered = frames + rendered, depths + [None] * len(rendered), len(rendered)
+        keypoints.by_image.update(observations)
     encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
     b = cfg.buffer
     short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
@@ -42,7 +48,9 @@ def main(cfg: DictConfig) -> None:
     with atomic_dir(out) as tmp:
         write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name)
         megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
-    stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames),
+    stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames) - n_rendered,
+             "rendered_images": n_rendered,
+             "rendered_buffer_views": int((buf.view_image >= len(frames) - n_rendered).sum()),
              "short_side": short_side, "feature_dim": int(buf.features.shape[1]), "megabytes": megabytes,
              "encoder": weights.name, "keypoint_observations": len(buf.kp_id),
              "keypoints_observed": int(len(set(buf.kp_id.tolist()))), "keypoints_kept": len(buf.keypoint_xyz),

@@ -47,6 +47,8 @@ def repo(tmp_path_factory) -> Path:
     _set(dst / "conf/buffer/default.yaml", "size: 262144", "size: 16384")
     _set(dst / "conf/train/default.yaml", "iterations: 6000", "iterations: 20")
     _set(dst / "conf/train/default.yaml", "batch_size: 2048", "batch_size: 1024")
+    _set(dst / "conf/gaussians/default.yaml", "iterations: 400", "iterations: 30")
+    _set(dst / "conf/render/default.yaml", "views: 30", "views: 4")
     _run(["git", "init", "-q"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "add", "-A"], dst)
     _run(["git", "-c", "user.email=ci@usvc", "-c", "user.name=ci", "commit", "-qm", "copy"], dst)
@@ -69,12 +71,16 @@ def test_repro_produces_every_artifact(repo):
     for rel in ["data/raw/mini/train/rgb", "data/mini/prepared/scene.h5", "data/mini/sfm/tracks.h5",
                 "data/mini/sfm/points.ply", "data/mini/sfm/model/points3D.bin",
                 "data/mini/keypoints/keypoints.h5", "data/mini/keypoints/keypoints.ply",
+                "data/mini/gaussians/splat.ply", "data/mini/render/render.h5", "data/mini/render/images/0003.png",
                 "data/mini/buffer/buffer.h5", "data/mini/map/map.pt", "data/mini/relocalize/poses.txt",
                 "data/mini/relocalize/queries.h5", "results/mini/metrics.json",
                 "results/mini/plots/trajectory.png", "results/mini/plots/trans_cdf.csv"]:
         assert (repo / rel).exists(), rel
     sfm = json.loads((repo / "results/mini/sfm.json").read_text())
     assert sfm["points"] > 500 and sfm["median_reprojection_error_px"] < 1.0
+    splat = json.loads((repo / "results/mini/gaussians.json").read_text())
+    assert splat["heldout_views"] > 0 and splat["heldout_psnr"] > 10 and splat["ply_reload_max_abs_diff"] == 0.0
+    assert json.loads((repo / "results/mini/render.json").read_text())["views"] == 4
     metrics = json.loads((repo / "results/mini/metrics.json").read_text())
     assert metrics["n_queries"] == 20 and 0.0 <= metrics["acc_5cm_5deg"] <= 1.0
     shown = _run([sys.executable, "-m", "dvc", "metrics", "show"], repo).stdout

@@ -34,7 +34,10 @@ def test_plan_follows_dvc_yaml_order_and_outs():
 @pytest.mark.parametrize("overrides, first", [
     (["keypoints.tau=2.0"], "keypoints"),
     (["train.bundle_weight=0.5"], "train"),
-    (["method=single"], "train"),
+    (["method=single"], "buffer"),  # the method files also set buffer.rendered_views
+    (["gaussians.iterations=100"], "gaussians"),
+    (["render.max_angle_deg=30"], "render"),
+    (["buffer.rendered_views=true"], "buffer"),
     (["relocalize.refine_delta=0.01"], "relocalize"),
     (["relocalize.max_error_px=5"], "relocalize"),
     (["seed=1"], "buffer"),
@@ -52,7 +55,8 @@ def test_first_affected_stage_on_real_dvc_yaml(overrides, first):
 def test_method_files_are_read_per_key():
     assert stages_reading("train.bundle_weight", PLAN) == ["train"]
     assert stages_reading("relocalize.refine", PLAN) == ["relocalize"]
-    assert stages_reading("method", PLAN) == ["train", "relocalize"]
+    assert stages_reading("method", PLAN) == ["buffer", "train", "relocalize"]
+    assert stages_reading("buffer.rendered_views", PLAN) == ["buffer"]
     assert stages_reading("seed", PLAN) == ["buffer", "train", "relocalize"]
 
 
@@ -63,11 +67,12 @@ def test_scene_group_starts_at_generate_only_for_the_generated_scene():
 
 def test_split_plan_reuses_everything_before_the_first_stage():
     upstream, rerun = split_plan(PLAN, "relocalize", generated=True)
-    assert [st.name for st in upstream] == ["generate", "prepare", "sfm", "keypoints", "buffer", "train"]
+    assert [st.name for st in upstream] == ["generate", "prepare", "sfm", "gaussians", "keypoints", "render",
+                                            "buffer", "train"]
     assert [st.name for st in rerun] == ["relocalize", "metrics"]
     upstream, rerun = split_plan(PLAN, "keypoints", generated=False)
-    assert [st.name for st in upstream] == ["prepare", "sfm"]
-    assert [st.name for st in rerun] == ["keypoints", "buffer", "train", "relocalize", "metrics"]
+    assert [st.name for st in upstream] == ["prepare", "sfm", "gaussians"]  # a tau sweep reuses the 3DGS fit
+    assert [st.name for st in rerun] == ["keypoints", "render", "buffer", "train", "relocalize", "metrics"]
 
 
 def test_unknown_key_is_named():

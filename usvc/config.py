@@ -77,6 +77,7 @@ class BufferConfig:
     contrast_max: float = 1.1
     keypoint_obs_per_view: int = 1024  # cap on keypoint tuples stored per augmented view (0 = all)
     depth_visibility_tol: float = 0.05  # a non-track keypoint is visible where |depth - z| < tol * z
+    rendered_views: bool = False  # add the render stage's Gaussian-splatting views (method=multiview_gs)
 
 
 @dataclass
@@ -114,9 +115,54 @@ class RelocalizeConfig:
 
 
 @dataclass
+class GaussiansConfig:
+    iterations: int = 400
+    width: int = 160  # fit and evaluation width, px (0 = the prepared images' width)
+    sh_degree: int = 3
+    sh_increase_every: int = 100
+    ssim_weight: float = 0.2
+    lr_means: float = 1.6e-4  # times the scene extent
+    lr_means_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 1.25e-4
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    densify_from: int = 100
+    densify_until: int = 300
+    densify_every: int = 50
+    opacity_reset_every: int = 200  # 0 = never
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    min_opacity: float = 0.005
+    max_screen_radius: float = 0.0  # px, 0 = off
+    max_world_scale: float = 0.1  # fraction of the scene extent
+    max_gaussians: int = 20000
+    initial_opacity: float = 0.1
+    holdout_every: int = 8  # every n-th mapping image is held out for PSNR/SSIM; 0 = none
+    tile: int = 8
+    seed: int = 0
+
+
+@dataclass
+class RenderConfig:
+    views: int = 30  # novel views to render
+    max_angle_deg: float = 20.0  # orbit angle about the keypoint cluster, from the source view
+    max_translation_rel: float = 0.1  # extra camera translation, in units of the cluster's depth
+    cluster_radius_rel: float = 0.15  # keypoints within this fraction of the depth of the centre form a cluster
+    min_cluster_keypoints: int = 10
+    min_visible_keypoints: int = 20  # a sampled pose is kept when at least this many keypoints are visible
+    max_tries: int = 20  # per view, before giving up on a source view
+    width: int = 0  # render width, px (0 = the prepared images' width)
+    depth_tolerance: float = 0.05  # visible where |rendered depth - z| < tol * z
+    min_alpha: float = 0.5  # and the rendered opacity there is at least this
+    seed: int = 0
+
+
+@dataclass
 class Config:
     seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
-    method: str = "multiview"  # set by the method group: single | multiview
+    method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
     data_dir: str = "data"
     results_dir: str = "results"
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -127,6 +173,8 @@ class Config:
     buffer: BufferConfig = field(default_factory=BufferConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     relocalize: RelocalizeConfig = field(default_factory=RelocalizeConfig)
+    gaussians: GaussiansConfig = field(default_factory=GaussiansConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
 
 
 _CHOICES: dict[str, tuple[str, ...]] = {
@@ -138,7 +186,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "train.optimizer": ("adamw", "adabelief"),
     "train.schedule": ("one_cycle", "constant"),
     "relocalize.backend": ("opencv", "pycolmap"),
-    "method": ("single", "multiview"),
+    "method": ("single", "multiview", "multiview_gs"),
     "train.bundle_loss": ("tanh", "squared"),
 }
 _POSITIVE: tuple[str, ...] = (
@@ -151,6 +199,11 @@ _POSITIVE: tuple[str, ...] = (
     "train.reproj_weight", "train.bundle_groups_per_batch", "train.bundle_obs_per_group",
     "buffer.depth_visibility_tol", "relocalize.refine_radius_px", "relocalize.refine_max_iterations",
     "relocalize.refine_delta", "relocalize.refine_min_correspondences",
+    "gaussians.iterations", "gaussians.sh_increase_every", "gaussians.lr_means", "gaussians.lr_means_final",
+    "gaussians.densify_every", "gaussians.densify_grad_threshold", "gaussians.percent_dense",
+    "gaussians.max_world_scale", "gaussians.max_gaussians", "gaussians.initial_opacity", "gaussians.tile",
+    "render.views", "render.max_tries", "render.depth_tolerance", "render.min_cluster_keypoints",
+    "render.min_visible_keypoints", "render.cluster_radius_rel",
 )
 
 
@@ -184,6 +237,15 @@ def validate(cfg: Any) -> None:
         raise ConfigError("config keys buffer.short_side and model.head_blocks must be >= 0")
     if cfg.train.bundle_weight < 0 or cfg.buffer.keypoint_obs_per_view < 0:
         raise ConfigError("config keys train.bundle_weight and buffer.keypoint_obs_per_view must be >= 0")
+    if not 0 <= cfg.gaussians.sh_degree <= 3:
+        raise ConfigError(f"config key gaussians.sh_degree={cfg.gaussians.sh_degree!r} must be 0..3")
+    if not 0 < cfg.gaussians.initial_opacity < 1 or not 0 <= cfg.gaussians.ssim_weight <= 1:
+        raise ConfigError("config keys gaussians.initial_opacity must be in (0, 1) and gaussians.ssim_weight in [0, 1]")
+    for key in ("gaussians.width", "gaussians.densify_from", "gaussians.densify_until", "gaussians.opacity_reset_every",
+                "gaussians.holdout_every", "gaussians.max_screen_radius", "render.width", "render.max_angle_deg",
+                "render.max_translation_rel", "render.min_alpha"):
+        if _get(cfg, key) < 0:
+            raise ConfigError(f"config key {key}={_get(cfg, key)!r} must be >= 0")
     if cfg.scene.metric_scale is not None and not cfg.scene.metric_scale > 0:
         raise ConfigError(f"config key scene.metric_scale={cfg.scene.metric_scale!r} must be > 0 or null")
 
@@ -200,6 +262,8 @@ def register_configs() -> None:
     cs.store(group="buffer", name="base_buffer", node=BufferConfig)
     cs.store(group="train", name="base_train", node=TrainConfig)
     cs.store(group="relocalize", name="base_relocalize", node=RelocalizeConfig)
+    cs.store(group="gaussians", name="base_gaussians", node=GaussiansConfig)
+    cs.store(group="render", name="base_render", node=RenderConfig)
 
 
 GROUP_SCHEMAS: dict[str, type] = {
@@ -211,6 +275,8 @@ GROUP_SCHEMAS: dict[str, type] = {
     "buffer": BufferConfig,
     "train": TrainConfig,
     "relocalize": RelocalizeConfig,
+    "gaussians": GaussiansConfig,
+    "render": RenderConfig,
 }
 
 

@@ -40,5 +40,13 @@ class ScenePaths:
         return self.data_dir / self.scene / "relocalize"
 
     @property
+    def gaussians(self) -> Path:
+        return self.data_dir / self.scene / "gaussians"
+
+    @property
+    def render(self) -> Path:
+        return self.data_dir / self.scene / "render"
+
+    @property
     def plots(self) -> Path:
         return self.results_dir / self.scene / "plots"
