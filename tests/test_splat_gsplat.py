@@ -70,7 +70,7 @@ def test_gsplat_unavailable_on_cpu():
 def test_forward_matches_torch_renderer():
     g, view = make_scene("cuda")
     with torch.no_grad():
-        ours = render(g, view, background=BACKGROUND)
+        ours = render(g, view, background=BACKGROUND, backend="torch")
         theirs = render_gsplat(g, view, background=BACKGROUND)
     assert theirs.rgb.shape == (HEIGHT, WIDTH, 3) and theirs.depth.shape == (HEIGHT, WIDTH)
     assert theirs.alpha.shape == (HEIGHT, WIDTH)
@@ -99,7 +99,8 @@ def test_gradients_match_torch_renderer():
     g, view = make_scene("cuda")
     w = weights(view, "cuda")
     grads, means2d_grads = [], []
-    for fn in (render, render_gsplat):
+    torch_render = lambda *a, **k: render(*a, backend="torch", **k)  # noqa: E731
+    for fn in (torch_render, render_gsplat):
         params = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
         out = fn(Gaussians(**params), view, background=BACKGROUND)
         loss = (out.rgb * w[..., :3]).sum() + (out.alpha * w[..., 3]).sum()
@@ -113,3 +114,16 @@ def test_gradients_match_torch_renderer():
     # What densification reads: the screen-space gradient of the projected means.
     cos = _cosine(means2d_grads[0], means2d_grads[1])
     assert cos > 0.95, ("means2d", cos)
+
+
+def test_auto_backend_is_torch_without_gsplat_on_cpu():
+    from usvc.splat.gaussians import Gaussians as G
+    from usvc.splat.rasterize import View as V
+
+    g = G(means=torch.tensor([[0.0, 0.0, 2.0]] * 4) + torch.arange(4.0)[:, None] * 0.1,
+          log_scales=torch.full((4, 3), -2.0), quats=torch.tensor([[1.0, 0, 0, 0]] * 4),
+          opacity_logits=torch.zeros(4), sh_dc=torch.zeros(4, 3), sh_rest=torch.zeros(4, 0, 3))
+    v = V(torch.eye(3), torch.zeros(3), torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]), 16, 16)
+    assert torch.equal(render(g, v).rgb, render(g, v, backend="torch").rgb)
+    with pytest.raises(ValueError, match="backend"):
+        render(g, v, backend="fast")

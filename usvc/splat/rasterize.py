@@ -226,9 +226,22 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     return image[:height, :width]
 
 
+BACKENDS = ("auto", "torch", "gsplat")
+
+
 def render(g: Gaussians, view: View, sh_degree: int | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-           tile: int = 16, budget: int = 1 << 22) -> RenderOutput:
-    """RGB, expected depth and alpha of `g` seen from `view` (differentiable in every parameter)."""
+           tile: int = 16, budget: int = 1 << 22, backend: str = "auto") -> RenderOutput:
+    """RGB, expected depth and alpha of `g` seen from `view` (differentiable in every parameter).
+
+    backend "auto" uses gsplat's CUDA kernels when the Gaussians are on a GPU and gsplat is
+    installed, this module's PyTorch rasteriser otherwise."""
+    if backend not in BACKENDS:
+        raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")
+    if backend != "torch":
+        from usvc.splat.gsplat_backend import gsplat_available, render_gsplat
+
+        if backend == "gsplat" or gsplat_available(g.means.device):
+            return render_gsplat(g, view, sh_degree, background)
     proj = project(g, view, sh_degree)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
