@@ -137,14 +137,13 @@ def _chunks(counts: torch.Tensor, pixels_per_tile: int, budget: int) -> list[tup
 
 
 def _alphas(phi: torch.Tensor, q: torch.Tensor, op: torch.Tensor):
-    power = (phi @ q).clamp(max=0.0)  # (T, P, k); <= 0 for a positive-definite conic
-    e = torch.exp(power)
-    raw = op[:, None, :] * e
-    live = raw >= ALPHA_MIN
-    alpha = torch.where(live, raw.clamp(max=ALPHA_MAX), torch.zeros_like(raw))
+    """(raw opacity op * exp(power), alpha, transmittance before each Gaussian), all (T, P, k).
+    In-place where possible: these blocks are the rasteriser's whole memory traffic."""
+    raw = torch.matmul(phi, q).clamp_(max=0.0).exp_().mul_(op[:, None, :])  # power <= 0 for a PD conic
+    alpha = raw.clamp(max=ALPHA_MAX).mul_(raw >= ALPHA_MIN)
     log_keep = torch.log1p(-alpha)
-    trans = torch.exp(torch.cumsum(log_keep, dim=-1) - log_keep)  # transmittance before each Gaussian
-    return e, raw, live, alpha, trans
+    trans = torch.cumsum(log_keep, dim=-1).sub_(log_keep).exp_()
+    return raw, alpha, trans
 
 
 def quadratic_form(local_means: torch.Tensor, conics: torch.Tensor) -> torch.Tensor:
@@ -174,38 +173,40 @@ class BlendTiles(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, phi, q, op, f):
-        _, _, _, alpha, trans = _alphas(phi, q, op)
+        _, alpha, trans = _alphas(phi, q, op)
         ctx.save_for_backward(phi, q, op, f)
-        return torch.bmm(alpha * trans, f)
+        return torch.bmm(alpha.mul_(trans), f)
 
     @staticmethod
     def backward(ctx, grad_out):
         phi, q, op, f = ctx.saved_tensors
-        e, raw, live, alpha, trans = _alphas(phi, q, op)
+        raw, alpha, trans = _alphas(phi, q, op)
         w = alpha * trans
         grad_f = torch.bmm(w.transpose(1, 2), grad_out)
         G = torch.bmm(grad_out, f.transpose(1, 2))  # dL/d(w_k) per (pixel, Gaussian)
-        S = w * G
-        behind = S.sum(-1, keepdim=True) - torch.cumsum(S, dim=-1)  # through later Gaussians' T
-        d_alpha = trans * G - behind / (1.0 - alpha)
-        d_alpha = torch.where(live & (raw < ALPHA_MAX), d_alpha, torch.zeros_like(d_alpha))
-        grad_op = (d_alpha * e).sum(1)
-        grad_q = phi.T @ (d_alpha * raw)
+        behind = w.mul_(G)  # w is not needed any more
+        behind = behind.sum(-1, keepdim=True) - torch.cumsum(behind, dim=-1)  # through later Gaussians' T
+        # dL/d alpha_k = T_k G_k - sum_{j>k} w_j G_j / (1 - alpha_k); zero where alpha was clamped or culled.
+        d_alpha = trans.mul_(G).sub_(behind.div_(1.0 - alpha))
+        d_alpha.mul_((raw >= ALPHA_MIN) & (raw < ALPHA_MAX))
+        d_pow = d_alpha.mul_(raw)  # d alpha / d power = raw
+        grad_op = d_pow.sum(1) / op.clamp(min=1e-12)  # d alpha / d op = exp(power) = raw / op
+        grad_q = phi.T @ d_pow
         return None, grad_q, grad_op, grad_f
 
 
 def composite(proj: Projected, features: torch.Tensor, width: int, height: int, tile: int = 16,
-              budget: int = 1 << 22) -> torch.Tensor:
+              budget: int = 1 << 18) -> torch.Tensor:
     """Front-to-back alpha compositing of per-Gaussian `features` (N, C); returns (H, W, C + 1)
     with accumulated alpha as the last channel."""
     dev = features.device
     gid_sorted, starts, counts, tw = _bin_tiles(proj, width, height, tile)
     n, ch = features.shape
-    pad = lambda x, v: torch.cat([x, torch.full((1,) + x.shape[1:], v, dtype=x.dtype, device=dev)])  # noqa: E731
-    means2d = pad(proj.means2d, 0.0)
-    conics = pad(proj.conics, 0.0)
-    opac = pad(proj.opacities, 0.0)
-    feats = pad(torch.cat([features, torch.ones_like(features[:, :1])], 1), 0.0)
+    # One packed row per Gaussian (plus a transparent padding row n): one gather per chunk, and one
+    # scatter-add in its backward, instead of one per attribute.
+    packed = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None], features,
+                        torch.ones_like(features[:, :1])], 1)
+    packed = torch.cat([packed, torch.zeros_like(packed[:1])], 0)
     ppt = tile * tile
     phi = pixel_basis(tile, dev).to(features.dtype)
     th = math.ceil(height / tile)
@@ -215,9 +216,10 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
         valid = ks[None] < counts[tids][:, None]
         rows = (starts[tids][:, None] + ks[None]).clamp(max=max(len(gid_sorted) - 1, 0))
         gid = torch.where(valid, gid_sorted[rows], torch.full_like(rows, n))  # (T, k); n = padding
-        origin = torch.stack([(tids % tw) * tile, (tids // tw) * tile], -1).to(means2d.dtype)  # (T, 2)
-        q = quadratic_form(means2d[gid] - origin[:, None, :], conics[gid])
-        done_blocks.append(BlendTiles.apply(phi, q, opac[gid], feats[gid]))
+        origin = torch.stack([(tids % tw) * tile, (tids // tw) * tile], -1).to(packed.dtype)  # (T, 2)
+        rows_g = packed[gid]  # (T, k, 6 + C + 1)
+        q = quadratic_form(rows_g[..., 0:2] - origin[:, None, :], rows_g[..., 2:5])
+        done_blocks.append(BlendTiles.apply(phi, q, rows_g[..., 5], rows_g[..., 6:]))
         done_tiles.append(tids)
     tiles = torch.zeros(th * tw, ppt, ch + 1, dtype=features.dtype, device=dev)
     if done_tiles:
@@ -230,7 +232,7 @@ BACKENDS = ("auto", "torch", "gsplat")
 
 
 def render(g: Gaussians, view: View, sh_degree: int | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-           tile: int = 16, budget: int = 1 << 22, backend: str = "auto") -> RenderOutput:
+           tile: int = 16, budget: int = 1 << 18, backend: str = "auto") -> RenderOutput:
     """RGB, expected depth and alpha of `g` seen from `view` (differentiable in every parameter).
 
     backend "auto" uses gsplat's CUDA kernels when the Gaussians are on a GPU and gsplat is
