@@ -32,7 +32,7 @@ def main(cfg: DictConfig) -> None:
     out, metrics_path = stage_outputs(cfg, "render")
     with atomic_dir(out) as tmp:
         write_rendered_views(tmp, views)
-    stats.update({"seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb(),
+    stats.update({"seed": opts.seed, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb(),
                   "width": int(views[0].rgb.shape[1]), "height": int(views[0].rgb.shape[0])})
     write_json(metrics_path, stats)
     log.info("render %s: %d views, %.0f visible keypoints per view, %.1f deg from the source on average, %.0f s",
