@@ -163,6 +163,24 @@ def pixel_basis(tile: int, device: torch.device | str) -> torch.Tensor:
     return torch.stack([u * u, u * v, v * v, u, v, torch.ones_like(u)], -1)
 
 
+class GatherRows(torch.autograd.Function):
+    """src[index] with a deterministic backward: autograd's scatter-add for advanced indexing runs
+    in parallel on CPU and sums in thread order, so the same fit gave different bits run to run;
+    index_add_ adds the rows in index order."""
+
+    @staticmethod
+    def forward(ctx, src, index):
+        ctx.save_for_backward(index)
+        ctx.rows = src.shape[0]
+        return src[index]
+
+    @staticmethod
+    def backward(ctx, grad):
+        (index,) = ctx.saved_tensors
+        out = torch.zeros((ctx.rows,) + grad.shape[index.dim():], dtype=grad.dtype, device=grad.device)
+        return out.index_add_(0, index.reshape(-1), grad.reshape((-1,) + grad.shape[index.dim():])), None
+
+
 class BlendTiles(torch.autograd.Function):
     """Alpha blending of one chunk of tiles, out[t, p] = sum_k alpha_k T_k f_k, with a hand-written
     backward that recomputes the (tiles, pixels, Gaussians) block instead of storing a dozen of
@@ -217,7 +235,7 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
         rows = (starts[tids][:, None] + ks[None]).clamp(max=max(len(gid_sorted) - 1, 0))
         gid = torch.where(valid, gid_sorted[rows], torch.full_like(rows, n))  # (T, k); n = padding
         origin = torch.stack([(tids % tw) * tile, (tids // tw) * tile], -1).to(packed.dtype)  # (T, 2)
-        rows_g = packed[gid]  # (T, k, 6 + C + 1)
+        rows_g = GatherRows.apply(packed, gid)  # (T, k, 6 + C + 1)
         q = quadratic_form(rows_g[..., 0:2] - origin[:, None, :], rows_g[..., 2:5])
         done_blocks.append(BlendTiles.apply(phi, q, rows_g[..., 5], rows_g[..., 6:]))
         done_tiles.append(tids)
