@@ -20,6 +20,8 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from usvc.errors import UsvcError
+from usvc.evaluation.pose_errors import rotation_error_deg
+from usvc.geometry import camera_centers
 from usvc.scene import Frame
 from usvc.splat.gaussians import Gaussians
 from usvc.splat.rasterize import View, render
@@ -61,7 +63,7 @@ def orbit_pose(R: np.ndarray, t: np.ndarray, centre: np.ndarray, rotation: np.nd
                shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera pose after rotating the camera rigidly about `centre` by `rotation` (world
     frame) and then moving its centre by `shift`: points near `centre` stay near their pixels."""
-    C = -R.T @ t
+    C = camera_centers(R, t)
     C_new = centre + rotation @ (C - centre) + shift
     R_new = R @ rotation.T
     return R_new, -R_new @ C_new
@@ -150,8 +152,8 @@ def render_novel_views(model: Gaussians, frames: list[Frame], kp: SceneKeypoints
                 continue
             rgb = (out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
             views.append(NovelView(f.name, R, t, K, rgb, d, ids.astype(np.int32), kuv.astype(np.float32),
-                                   float(np.rad2deg(Rotation.from_matrix(R @ f.R.T).magnitude())),
-                                   float(np.linalg.norm(-R.T @ t + f.R.T @ f.t))))
+                                   rotation_error_deg(R, f.R),
+                                   float(np.linalg.norm(camera_centers(R, t) - camera_centers(f.R, f.t)))))
             bar.update(1)
     if not views:
         raise UsvcError(f"no novel view kept after {tries} tries ({rejected_cluster} without a keypoint cluster in "
@@ -170,9 +172,4 @@ def render_novel_views(model: Gaussians, frames: list[Frame], kp: SceneKeypoints
 def _novelty(views: list[NovelView], frames: list[Frame]) -> float:
     """Mean over novel views of the rotation angle to the closest mapping orientation."""
     Rm = np.stack([f.R for f in frames])
-    out = []
-    for v in views:
-        rel = np.einsum("ij,njk->nik", v.R, Rm.transpose(0, 2, 1))
-        cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-        out.append(np.rad2deg(np.arccos(cos)).min())
-    return float(np.mean(out))
+    return float(np.mean([rotation_error_deg(np.broadcast_to(v.R, Rm.shape), Rm).min() for v in views]))
