@@ -24,7 +24,7 @@ def main(cfg: DictConfig) -> None:
     scene = load_scene(sc.format, sc.path, sc.name, sc.split, sc.split_n, sc.metric_scale)
     out, metrics_path = stage_outputs(cfg, "prepared")
     with atomic_dir(out) as tmp:
-        stats = prepare_scene(scene, tmp, sc.working_width)
+        stats = prepare_scene(scene, tmp, sc.working_width, sc.undistort_fov)
     write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
 
 

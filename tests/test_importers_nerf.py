@@ -207,10 +207,10 @@ def colmap_scene(root: Path, text: bool, model: str = "PINHOLE") -> dict[str, Gt
     W, H = 36, 24
     params = {"PINHOLE": [40.0, 41.0, W / 2, H / 2], "SIMPLE_RADIAL": [40.0, W / 2, H / 2, 0.03],
               "OPENCV": [40.0, 41.0, W / 2, H / 2, 0.05, -0.01, 0.002, -0.001],
-              "OPENCV_FISHEYE": [40.0, 41.0, W / 2, H / 2, 0, 0, 0, 0]}[model]
+              "FOV": [40.0, 41.0, W / 2, H / 2, 0.01]}[model]
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=1))
-    fisheye = model == "OPENCV_FISHEYE"
+    fisheye = model == "FOV"  # a model usvc does not import
     cam = Camera("PINHOLE", W, H, tuple(params[:4])) if fisheye else Camera(model, W, H, tuple(params))
     gts = {}
     for image_id, name in enumerate(["frame10.png", "frame2.png", "frame1.png"], start=1):
@@ -255,8 +255,8 @@ def test_colmap_distorted_models_pass_through(tmp_path: Path, model: str) -> Non
 
 
 def test_colmap_unsupported_model(tmp_path: Path) -> None:
-    colmap_scene(tmp_path, text=True, model="OPENCV_FISHEYE")
-    with pytest.raises(SceneError, match="sparse/0.*unsupported model OPENCV_FISHEYE"):
+    colmap_scene(tmp_path, text=True, model="FOV")
+    with pytest.raises(SceneError, match="sparse/0.*unsupported model FOV"):
         load_scene("colmap", tmp_path, "toy", "every_nth", 2)
 
 

@@ -22,6 +22,7 @@ from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, save_map
 from usvc.relocalizer import PoseEstimate, Relocalizer, RelocalizeOptions
 from usvc.scene import Camera
+from usvc.undistort import undistorted_camera
 
 SHORT_SIDE = 120  # the map's working resolution: 160x120 images, 20x15 cells
 WORK_CAMERA = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))
@@ -131,10 +132,57 @@ def test_outliers_lower_confidence(tiny_map: tuple[Path, Path], monkeypatch: pyt
     assert 0.5 < est.confidence < 0.9
 
 
+@pytest.mark.parametrize("model,params", [
+    ("OPENCV", (130.0, 125.0, 81.0, 59.0, 0.06, -0.08, 0.001, -0.002)),
+    ("SIMPLE_RADIAL", (128.0, 80.0, 60.0, -0.1)),
+    ("OPENCV_FISHEYE", (120.0, 120.0, 80.0, 60.0, 0.05, 0.01, 0.0, 0.0)),
+])
+def test_distorted_query_is_undistorted_first(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch,
+                                              model: str, params: tuple) -> None:
+    """The network must see the image resampled to the undistorted pinhole camera, and PnP must use
+    that camera at the network's resolution: exact coordinates of that view give the true pose."""
+    distorted = Camera(model, 160, 120, params)
+    pinhole = undistorted_camera(distorted)
+    assert (pinhole.width, pinhole.height) != (160, 120) or model == "OPENCV_FISHEYE"
+
+    def fake(self: Relocalizer, gray01: np.ndarray) -> np.ndarray:
+        h, w = gray01.shape
+        return exact_coordinates(-(-h // 8), -(-w // 8), pinhole.scaled(w, h))
+
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", fake)
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), distorted)
+    assert_true_pose(est)
+    assert est.camera == distorted
+
+
+@pytest.mark.parametrize("size", [(160, 120), (320, 240)])
+def test_unknown_focal_is_estimated_with_the_pose(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch,
+                                                  tmp_path: Path, size: tuple[int, int]) -> None:
+    centred = Camera("PINHOLE", 160, 120, (128.0, 128.0, 80.0, 60.0))
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: exact_coordinates(15, 20, centred))
+    path = tmp_path / "photo.png"
+    cv2.imwrite(str(path), photo(*size))
+    est = Relocalizer(*tiny_map).localize(path, None)
+    assert_true_pose(est)
+    scale = size[0] / 160
+    assert est.camera is not None and est.camera.model == "SIMPLE_PINHOLE" and est.focal_estimated
+    assert est.camera.params == pytest.approx((128.0 * scale, size[0] / 2, size[1] / 2), rel=1e-3)
+    assert est.to_json()["camera"]["focal_estimated"] is True
+
+
+def test_unknown_focal_garbage_fails_cleanly(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """No usable coordinates (the head predicted nothing finite): a failure, not an exception."""
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: np.full((15, 20, 3), np.nan))
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), None)
+    assert not est.success and est.confidence == 0.0 and "q_wxyz" not in est.to_json()
+
+
 def test_to_json(tiny_map: tuple[Path, Path], exact: list) -> None:
     out = Relocalizer(*tiny_map).localize(photo(160, 120), WORK_CAMERA).to_json()
     assert set(out) == {"success", "inliers", "cells", "confidence", "seconds",
-                        "q_wxyz", "t", "camera_center", "refinement"}
+                        "q_wxyz", "t", "camera_center", "refinement", "camera"}
+    assert out["camera"] == {"model": "PINHOLE", "width": 160, "height": 120,
+                             "params": list(WORK_CAMERA.params), "focal_estimated": False}
     assert set(out["seconds"]) == {"preprocess", "network", "pnp", "refine", "total"}
     # this map has no keypoints: no refinement, the initial pose is the returned one
     assert out["refinement"]["iterations"] == 0 and out["refinement"]["kept"] is False
@@ -157,8 +205,6 @@ def test_real_network_runs(tiny_map: tuple[Path, Path]) -> None:
 
 def test_input_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     reloc = Relocalizer(*tiny_map)
-    with pytest.raises(UsvcError, match="intrinsics are missing"):
-        reloc.localize(photo(160, 120), None)
     with pytest.raises(UsvcError, match="principal point .* outside the 160x120 image"):
         reloc.localize(photo(160, 120), (260.0, 250.0, 162.0, 118.0))  # intrinsics of a 2x photo
     with pytest.raises(UsvcError, match="camera is 320x240 but the image is 160x120"):

@@ -29,6 +29,7 @@ class SceneConfig:
     split_n: int = 8
     metric_scale: Optional[float] = None  # metres per scene unit; null = unknown
     working_width: int = 640  # images are resized to this width before anything else
+    undistort_fov: str = "crop"  # distorted cameras -> pinhole: crop (no black border) | full (all pixels)
     generated: bool = False  # produced by stages.generate (the miniature scene)
 
 
@@ -180,6 +181,7 @@ class Config:
 _CHOICES: dict[str, tuple[str, ...]] = {
     "scene.format": ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge"),
     "scene.split": ("given", "every_nth"),
+    "scene.undistort_fov": ("crop", "full"),
     "sfm.matching": ("auto", "exhaustive", "sequential", "poses"),
     "sfm.reconstruction": ("auto", "triangulate", "incremental"),
     "keypoints.weights": ("uniform", "reprojection"),

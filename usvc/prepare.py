@@ -1,4 +1,9 @@
-"""Import a scene from its source format and bring every image to the working resolution."""
+"""Import a scene, undistort every image to a PINHOLE camera, and resize it to the working width.
+
+Undistortion happens here, once, at the source resolution (``usvc.undistort``), before resizing:
+every later stage (SfM, buffer, Gaussian splatting, relocalization, metrics) sees pinhole images
+only. Poses are unchanged by undistortion, so metrics still score against the imported poses.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +18,7 @@ from tqdm import tqdm
 from usvc.errors import SceneError
 from usvc.scene import Frame, Scene
 from usvc.scene_io import IMAGE_DIR, SCENE_FILE, write_scene_h5
+from usvc.undistort import undistort
 
 log = logging.getLogger(__name__)
 
@@ -40,20 +46,24 @@ def _read_depth(frame: Frame) -> np.ndarray | None:
     return raw.astype(np.float32) * np.float32(frame.depth_scale)
 
 
-def prepare_scene(scene: Scene, out_dir: Path, working_width: int) -> dict:
-    """Write resized images and scene.h5 into `out_dir` (which must be empty); return stats."""
+def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop") -> dict:
+    """Write undistorted, resized images and scene.h5 into `out_dir` (which must be empty).
+
+    `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
+    :mod:`usvc.undistort`. Returns summary figures for the stage's metrics file.
+    """
     scene.split("train")
     scene.split("test")
     out_frames: list[Frame] = []
     depths: list[np.ndarray | None] = []
     for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
-        image = _read_image(frame.image_path)
+        image, camera = undistort(_read_image(frame.image_path), frame.camera, undistort_fov,
+                                  where=str(frame.image_path))
+        depth = _read_depth(frame)
+        if depth is not None and frame.camera.has_distortion:
+            depth = cv2.resize(depth, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)
+            depth, _ = undistort(depth, frame.camera, undistort_fov, where=str(frame.depth_path), nearest=True)
         h, w = image.shape[:2]
-        if (w, h) != (frame.camera.width, frame.camera.height):
-            raise SceneError(
-                f"{frame.image_path}: image is {w}x{h} but its camera says "
-                f"{frame.camera.width}x{frame.camera.height}"
-            )
         ww, wh = working_size(w, h, working_width)
         if (ww, wh) != (w, h):
             image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
@@ -62,13 +72,12 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int) -> dict:
         params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
         if not cv2.imwrite(str(dst), image, params):
             raise SceneError(f"cannot write image {dst}")
-        depth = _read_depth(frame)
         if depth is not None and depth.shape[:2] != (wh, ww):
             depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
         depths.append(depth)
-        out_frames.append(replace(frame, image_path=dst, camera=frame.camera.scaled(ww, wh), depth_path=None))
+        out_frames.append(replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None))
     prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir)
-    write_scene_h5(out_dir / SCENE_FILE, prepared, depths)
+    write_scene_h5(out_dir / SCENE_FILE, prepared, depths, source_cameras=[f.camera for f in scene.frames])
     n_train = len(prepared.split("train"))
     stats = {
         "frames": len(out_frames),
@@ -77,6 +86,9 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int) -> dict:
         "width": out_frames[0].camera.width,
         "height": out_frames[0].camera.height,
         "has_depth": any(d is not None for d in depths),
+        "undistorted": sum(f.camera.has_distortion for f in scene.frames),
+        "source_camera_models": sorted({f.camera.model for f in scene.frames}),
+        "undistort_fov": undistort_fov,
     }
     log.info("prepared %s: %s", scene.name, stats)
     return stats

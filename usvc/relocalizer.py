@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from usvc.errors import UsvcError
-from usvc.evaluation.pnp import BACKENDS, solve_pnp
+from usvc.evaluation.pnp import BACKENDS, estimate_focal, solve_pnp
 from usvc.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
 from usvc.model.errors import ModelError
@@ -27,6 +27,7 @@ from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 from usvc.refinement import RefineOptions, refine_pose
 from usvc.scene import Camera
+from usvc.undistort import undistort
 from usvc.weights import encoder_weights_path
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,7 @@ log = logging.getLogger(__name__)
 MIN_IMAGE_SIDE = 32
 
 Intrinsics = float | Sequence[float] | np.ndarray | Camera
+CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,8 @@ class PoseEstimate:
 
     `inliers` is the dense RANSAC inlier count of the returned pose; `initial_R`/`initial_t` are
     the dense RANSAC pose before refinement (equal to R, t when refinement did not replace it).
+    `camera` is the camera of the photo as given: the one passed in, or, when the intrinsics were
+    unknown, a SIMPLE_PINHOLE with the focal length estimated with the pose.
     """
 
     success: bool
@@ -80,6 +84,8 @@ class PoseEstimate:
     initial_t: np.ndarray = field(default_factory=_nan_t)
     refine_iterations: int = 0
     refine_kept: bool = False
+    camera: Camera | None = None
+    focal_estimated: bool = False
 
     @property
     def confidence(self) -> float:
@@ -101,13 +107,16 @@ class PoseEstimate:
             out["refinement"] = {"iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
                                  "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)],
                                  "initial_t": [float(v) for v in self.initial_t]}
+        if self.camera is not None:
+            c = self.camera
+            out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
+                             "params": [float(v) for v in c.params], "focal_estimated": self.focal_estimated}
         return out
 
 
-def camera_from_intrinsics(intrinsics: Intrinsics | None, width: int, height: int) -> Camera:
-    """A focal (principal point at the image centre), (fx, fy, cx, cy), a 3x3 K or a Camera."""
-    if intrinsics is None:
-        raise UsvcError("intrinsics are missing: give the focal length in pixels (e.g. --focal 525)")
+def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Camera:
+    """A focal (principal point at the image centre), (fx, fy, cx, cy), a 3x3 K or a Camera of
+    any supported COLMAP model (with distortion)."""
     if isinstance(intrinsics, Camera):
         cam = intrinsics
         if (cam.width, cam.height) != (width, height):
@@ -181,15 +190,22 @@ class Relocalizer:
         return out.permute(1, 2, 0).double().cpu().numpy()
 
     def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None) -> PoseEstimate:
+        """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
+        (principal point at the image centre, no distortion); a distorted Camera is undistorted
+        first, exactly as the prepare stage undistorts mapping images."""
         t0 = time.perf_counter()
         gray = _as_gray(image)
         h, w = gray.shape
         if min(h, w) < MIN_IMAGE_SIDE:
             raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
-        camera = camera_from_intrinsics(intrinsics, w, h)
-        if self.short_side and min(h, w) != self.short_side:
-            gray, _ = resize_to_short_side(gray, self.short_side)
-            camera = camera.scaled(gray.shape[1], gray.shape[0])
+        given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
+        camera = None
+        if given is not None:
+            gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
+        resize = 1.0
+        if self.short_side and min(gray.shape) != self.short_side:
+            gray, resize = resize_to_short_side(gray, self.short_side)
+            camera = camera.scaled(gray.shape[1], gray.shape[0]) if camera is not None else None
         t1 = time.perf_counter()
         coords = self.scene_coordinates(gray)
         t2 = time.perf_counter()
@@ -197,6 +213,16 @@ class Relocalizer:
         # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
         threshold = self.options.max_error_px * min(gray.shape) / self.options.reference_short_side
         pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+        if camera is None:
+            camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
+                                    self.options.seed)
+            if camera is not None:
+                f = camera.params[0] / resize
+                given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
+        if camera is None:
+            t3 = time.perf_counter()
+            seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
+            return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True)
         result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                            seed=self.options.seed, min_inliers=self.options.min_inliers,
                            backend=self.options.backend)
@@ -215,5 +241,5 @@ class Relocalizer:
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
                    "total": t4 - t0}
         return PoseEstimate(result.success, R, t, inliers, hc * wc, seconds, initial_R=result.R.copy(),
-                            initial_t=result.t.copy(), refine_iterations=iterations, refine_kept=kept)
-
+                            initial_t=result.t.copy(), refine_iterations=iterations, refine_kept=kept,
+                            camera=given, focal_estimated=intrinsics is None)

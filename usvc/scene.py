@@ -5,7 +5,9 @@ Conventions (fixed here once, so importers convert and nothing downstream guesse
 - intrinsics follow COLMAP: the centre of the top-left pixel is at (0.5, 0.5), so a principal
   point "at the image centre" is (W/2, H/2);
 - camera models and parameter order are COLMAP's (PINHOLE: fx fy cx cy; OPENCV: fx fy cx cy
-  k1 k2 p1 p2; SIMPLE_RADIAL: f cx cy k; RADIAL: f cx cy k1 k2; SIMPLE_PINHOLE: f cx cy);
+  k1 k2 p1 p2; OPENCV_FISHEYE: fx fy cx cy k1 k2 k3 k4; FULL_OPENCV: fx fy cx cy k1 k2 p1 p2 k3 k4 k5
+  k6; SIMPLE_RADIAL: f cx cy k; RADIAL: f cx cy k1 k2; SIMPLE_PINHOLE: f cx cy); the prepare stage
+  undistorts every distorted model to PINHOLE, so later stages see pinhole cameras only;
 - ``metric_scale`` is metres per scene unit, or None when the scene has no metric scale.
 """
 
@@ -25,10 +27,13 @@ CAMERA_MODELS: dict[str, int] = {
     "SIMPLE_RADIAL": 4,
     "RADIAL": 5,
     "OPENCV": 8,
+    "OPENCV_FISHEYE": 8,
+    "FULL_OPENCV": 12,
 }
 SPLITS = ("train", "test")
 # Leading parameters that are focal/principal point; the rest are distortion.
-_N_PROJECTION_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4}
+_N_PROJECTION_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4,
+                        "OPENCV_FISHEYE": 4, "FULL_OPENCV": 4}
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,8 @@ class Camera:
             raise SceneError(f"camera size must be positive, got {self.width}x{self.height}")
         if not np.all(np.isfinite(self.params)):
             raise SceneError(f"camera parameters are not finite: {self.params}")
+        if min(self.focal) <= 0:
+            raise SceneError(f"camera focal length must be positive, got {self.focal}")
 
     @property
     def focal(self) -> tuple[float, float]:
@@ -70,6 +77,9 @@ class Camera:
 
     @property
     def has_distortion(self) -> bool:
+        """True unless the model is a plain pinhole (a fisheye with zero coefficients still is one)."""
+        if self.model == "OPENCV_FISHEYE":
+            return True
         return any(abs(v) > 0 for v in self.params[_N_PROJECTION_PARAMS[self.model]:])
 
     def scaled(self, width: int, height: int) -> Camera:

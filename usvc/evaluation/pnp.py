@@ -180,6 +180,39 @@ def _solve_pycolmap(
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), np.asarray(res["inlier_mask"], bool)
 
 
+def estimate_focal(
+    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
+) -> Camera | None:
+    """The focal length of an uncalibrated photo, estimated with its pose (pycolmap's P4Pf
+    LO-RANSAC, then refinement of pose and focal); principal point at the image centre.
+
+    Returns a SIMPLE_PINHOLE camera, or None when no pose explains enough correspondences.
+    """
+    p2 = np.asarray(points2d, dtype=np.float64).reshape(-1, 2)
+    p3 = np.asarray(points3d, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
+    if finite.sum() < 8:
+        return None
+    # COLMAP's prior for a camera without calibration: 1.2 x the longer side.
+    cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=width, height=height,
+                          params=[1.2 * max(width, height), width / 2, height / 2])
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.estimate_focal_length = True
+    est.ransac.max_error = max_error_px
+    est.ransac.random_seed = seed
+    est.ransac.confidence = _CONFIDENCE
+    est.ransac.max_num_trials = _MAX_TRIALS
+    est.ransac.min_inlier_ratio = _MIN_INLIER_RATIO
+    ref = pycolmap.AbsolutePoseRefinementOptions()
+    ref.refine_focal_length = True
+    res = pycolmap.estimate_and_refine_absolute_pose(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]),
+                                                     cam, est, ref)
+    f = float(cam.params[0])  # refined in place
+    if res is None or not (np.isfinite(f) and f > 0):
+        return None
+    return Camera("SIMPLE_PINHOLE", width, height, (f, width / 2, height / 2))
+
+
 def solve_pnp(
     points2d: np.ndarray,
     points3d: np.ndarray,

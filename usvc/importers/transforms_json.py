@@ -1,12 +1,16 @@
 """instant-ngp / nerfstudio / Blender ``transforms.json`` layout.
 
-Intrinsics (``fl_x fl_y cx cy w h``, optional ``k1 k2 p1 p2``, or ``camera_angle_x``) sit at
+Intrinsics (``fl_x fl_y cx cy w h``, or ``camera_angle_x``) sit at
 the top level and may be overridden per frame (nerfstudio). ``transform_matrix`` is
 camera-to-world in OpenGL/Blender camera axes (x right, y up, z backwards); negating its y
 and z columns gives OpenCV axes. ``cx, cy`` are kept as given: both instant-ngp and
 nerfstudio put the image centre at (w/2, h/2), which is COLMAP's convention. A world-frame
 change recorded by nerfstudio (``applied_transform``) is a rigid change of the whole world
 and is left baked in, since relocalization only needs a consistent world.
+
+Lens models as nerfstudio writes them (``camera_model``): ``OPENCV`` with ``k1 k2 p1 p2`` (and
+``k3``, which makes it COLMAP's FULL_OPENCV), ``OPENCV_FISHEYE`` with ``k1 k2 k3 k4``, or
+``PINHOLE``; ``is_fisheye: true`` (instant-ngp) means OPENCV_FISHEYE.
 
 Frames listed but absent on disk are skipped with a warning (datasets are often pruned after
 export); a scene with none left is an error.
@@ -32,8 +36,8 @@ log = logging.getLogger(__name__)
 MAIN_FILE = "transforms.json"
 BLENDER_FILES = {"train": "transforms_train.json", "test": "transforms_test.json"}
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
-_DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
-_UNSUPPORTED_DISTORTION = ("k3", "k4")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_MODELS = ("PINHOLE", "OPENCV", "OPENCV_FISHEYE")
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 
 
@@ -83,10 +87,16 @@ def _resolve_image(base: Path, file_path: str) -> Path | None:
     return None
 
 
+def _model(intr: dict[str, Any], where: str) -> str:
+    model = "OPENCV_FISHEYE" if intr.get("is_fisheye") else intr.get("camera_model", "OPENCV")
+    if model not in _MODELS:
+        raise SceneError(f"{where}: camera model {model!r} is not supported; supported: {', '.join(_MODELS)}")
+    return str(model)
+
+
 def _camera(intr: dict[str, Any], image: Path, where: str) -> Camera:
     """Camera from merged top-level and per-frame intrinsics keys."""
-    if intr.get("is_fisheye") or intr.get("camera_model") not in (None, "OPENCV", "PINHOLE"):
-        raise SceneError(f"{where}: camera model {intr.get('camera_model', 'fisheye')!r} is not supported")
+    model = _model(intr, where)
     if "w" in intr and "h" in intr:
         w, h = _number(intr, "w", where), _number(intr, "h", where)
     else:
@@ -107,19 +117,26 @@ def _camera(intr: dict[str, Any], image: Path, where: str) -> Camera:
         fy = fx
     cx = _number(intr, "cx", where) if "cx" in intr else w / 2.0
     cy = _number(intr, "cy", where) if "cy" in intr else h / 2.0
-    for key in _UNSUPPORTED_DISTORTION:
-        if key in intr and _number(intr, key, where) != 0.0:
-            raise SceneError(f"{where}: distortion {key!r} is not representable in the OPENCV model")
-    if any(k in intr for k in _DISTORTION_KEYS):
-        dist = [_number(intr, k, where) if k in intr else 0.0 for k in _DISTORTION_KEYS]
-        return make_camera(where, "OPENCV", round(w), round(h), (fx, fy, cx, cy, *dist))
-    return make_camera(where, "PINHOLE", round(w), round(h), (fx, fy, cx, cy))
+    d = {k: _number(intr, k, where) if k in intr else 0.0 for k in _DISTORTION_KEYS}
+    size = (round(w), round(h))
+    if model == "OPENCV_FISHEYE":
+        if d["p1"] or d["p2"]:
+            raise SceneError(f"{where}: OPENCV_FISHEYE has no tangential terms, got p1={d['p1']}, p2={d['p2']}")
+        return make_camera(where, model, *size, (fx, fy, cx, cy, d["k1"], d["k2"], d["k3"], d["k4"]))
+    if d["k4"]:
+        raise SceneError(f"{where}: distortion 'k4' is not representable in the OPENCV model")
+    if d["k3"]:
+        return make_camera(where, "FULL_OPENCV", *size,
+                           (fx, fy, cx, cy, d["k1"], d["k2"], d["p1"], d["p2"], d["k3"], 0.0, 0.0, 0.0))
+    if model == "OPENCV" and any(k in intr for k in _DISTORTION_KEYS):
+        return make_camera(where, "OPENCV", *size, (fx, fy, cx, cy, d["k1"], d["k2"], d["p1"], d["p2"]))
+    return make_camera(where, "PINHOLE", *size, (fx, fy, cx, cy))
 
 
 def _frames_from(json_path: Path, root: Path) -> list[tuple[str, Frame]]:
     """(match key, frame with split 'train') for each frame of one json whose image exists."""
     data = _read_json(json_path)
-    top = {k: v for k, v in data.items() if k in _INTRINSIC_KEYS + _DISTORTION_KEYS + _UNSUPPORTED_DISTORTION}
+    top = {k: v for k, v in data.items() if k in _INTRINSIC_KEYS + _DISTORTION_KEYS}
     top.update({k: data[k] for k in ("camera_model", "is_fisheye") if k in data})
     out: list[tuple[str, Frame]] = []
     missing: list[str] = []
