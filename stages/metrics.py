@@ -43,11 +43,14 @@ def main(cfg: DictConfig) -> None:
     plots_dir, metrics_path = stage_outputs(cfg, "metrics", artifact="plots")
     with atomic_dir(plots_dir) as tmp:
         write_plots(tmp, rows, PER_QUERY_COLUMNS, scene.metric_scale, median_depth, f"{scene.name}: relocalization")
-    write_json(metrics_path, {**summary, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+    # "sfm": the queries' poses were estimated by SfM here (pseudo ground truth), not given
+    write_json(metrics_path, {**summary, "ground_truth": scene.pose_source,
+                              "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
     headline = "acc_5cm_5deg" if scene.metric_scale is not None else "acc_5deg_3pct"
-    log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg",
+    log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg%s",
              scene.name, headline, summary[headline], summary["n_queries"], summary["n_failed"],
-             summary["median_rot_deg"])
+             summary["median_rot_deg"],
+             " (against SfM pseudo ground truth)" if scene.pose_source == "sfm" else "")
     if f"initial_{headline}" in summary:
         log.info("metrics %s: before refinement %s=%.3f; refined pose kept for %.0f%% of queries",
                  scene.name, headline, summary[f"initial_{headline}"], 100 * summary["refine_kept_fraction"])

@@ -10,6 +10,7 @@ from usvc.atomic import atomic_dir
 from usvc.config import register_configs
 from usvc.importers import load_scene
 from usvc.prepare import prepare_scene
+from usvc.sfm import SfmOptions
 from usvc.stage import peak_memory_mb, stage_main, stage_outputs, write_json
 
 log = logging.getLogger("usvc")
@@ -24,7 +25,7 @@ def main(cfg: DictConfig) -> None:
     scene = load_scene(sc.format, sc.path, sc.name, sc.split, sc.split_n, sc.metric_scale)
     out, metrics_path = stage_outputs(cfg, "prepared")
     with atomic_dir(out) as tmp:
-        stats = prepare_scene(scene, tmp, sc.working_width, sc.undistort_fov)
+        stats = prepare_scene(scene, tmp, sc.working_width, sc.undistort_fov, SfmOptions(**cfg.sfm))
     write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
 
 

@@ -41,7 +41,7 @@ def test_plan_follows_dvc_yaml_order_and_outs():
     (["relocalize.refine_delta=0.01"], "relocalize"),
     (["relocalize.max_error_px=5"], "relocalize"),
     (["seed=1"], "buffer"),
-    (["sfm.seed=3"], "sfm"),
+    (["sfm.seed=3"], "prepare"),  # unposed scenes are posed by SfM in prepare
     (["model=default"], "buffer"),
     (["keypoints.tau=1.0", "relocalize.refine_radius_px=4"], "keypoints"),
     (["relocalize.refine_radius_px=4", "keypoints.tau=1.0"], "keypoints"),

@@ -137,20 +137,25 @@ def test_zero_bundle_weight_is_exactly_single_view_training():
 
 def test_bundle_loss_recovers_depth_that_single_view_reprojection_leaves_open():
     """Each point's pixel samples come from one view only: its depth along that ray is free under
-    L_pi. The keypoint tuples from the other views (bundle loss) pin it down."""
+    L_pi. The keypoint tuples from the other views (bundle loss) pin it down.
+
+    Measured over 3 buffers x 3 seeds at 1 and 2 threads: at 400 iterations the bundle median
+    was bimodal (0.001 or 0.14-0.19 m, by CPU and seed); from 600 iterations it is <= 0.001 m
+    and L_pi alone stays at 0.34-0.46 m. About a third of the points stay unconverged either
+    way (90th percentile ~0.7 m), so the median is what this asserts."""
     buf, pts, feats = synthetic_buffer(n_points=200, n_views=8)
     buf = with_keypoint_tuples(buf, pts, feats, one_view_pixels=True)
     errors = {}
     for weight in (0.0, 1.0):
-        opts = TrainOptions(iterations=400, batch_size=128, lr=3e-3, head_width=128, threshold_start=20.0,
+        opts = TrainOptions(iterations=800, batch_size=128, lr=3e-3, head_width=128, threshold_start=20.0,
                             bundle_weight=weight, bundle_groups_per_batch=32, bundle_obs_per_group=8)
         head, summary = train_head(buf, 3.0, opts)
         with torch.no_grad():
             pred = head.forward_flat(torch.from_numpy(feats).float()).numpy()
         errors[weight] = float(np.median(np.linalg.norm(pred - pts, axis=1)))
     assert summary["bundle_groups"] == 200 and "final_bundle_reproj_median_px" in summary
-    assert errors[1.0] < 0.08, errors
-    assert errors[0.0] > 4 * errors[1.0], errors
+    assert errors[1.0] < 0.02, errors
+    assert errors[0.0] > 0.15, errors
 
 
 def test_bundle_weight_without_keypoint_tuples_is_refused():

@@ -130,8 +130,9 @@ def test_prepare_undistorts_every_format(tmp_path: Path, fmt: str, model: str) -
     assert {f.camera.model for f in back.frames} == {"PINHOLE"}
     assert [c.model for c in read_source_cameras(prepared)] == [model] * 6
     by_name = {f.name: f for f in src.frames}
+    source_of = {Path(new).name: old for old, new in info["names"].items()}
     for frame in back.frames:
-        original = by_name[Path(frame.name).with_suffix(".png").name]
+        original = by_name[source_of[Path(frame.name).name]]
         np.testing.assert_allclose(frame.R, original.R, atol=1e-9)
         np.testing.assert_allclose(frame.t, original.t, atol=1e-9)
         image = cv2.imread(str(frame.image_path))

@@ -1,16 +1,22 @@
-"""`usvc` command line: localize one photo against a map, and rebuild the shipped encoders."""
+"""`usvc` command line: localize photos against a map (and export the poses), and rebuild the
+shipped encoders."""
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import logging
 import sys
 from dataclasses import fields
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from usvc.errors import UsvcError
-from usvc.model.errors import ModelError
+from usvc.errors import SceneError, UsvcError
+from usvc.logs import quiet_third_party
+
+if TYPE_CHECKING:
+    from usvc.scene import Camera
 
 log = logging.getLogger("usvc")
 
@@ -36,43 +42,167 @@ def _pretrain(args: argparse.Namespace) -> int:
     return 0
 
 
+CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
+                 "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
+                 "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4", "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6"}
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("usvc")
+    except importlib.metadata.PackageNotFoundError:
+        import usvc
+
+        return str(getattr(usvc, "__version__", "unknown"))
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _split_camera(tokens: list[str]) -> tuple[str, tuple[float, ...], list[str]]:
+    """`--camera MODEL P1 P2 ... [PHOTO ...]` -> (model, params, photos that argparse let it swallow)."""
+    model, rest = tokens[0].upper(), tokens[1:]
+    if model not in CAMERA_PARAMS:
+        raise UsvcError(f"--camera: unknown camera model {tokens[0]!r}; known: {', '.join(CAMERA_PARAMS)}")
+    count = next((i for i, t in enumerate(rest) if not _is_number(t)), len(rest))
+    expected = len(CAMERA_PARAMS[model].split())
+    if count != expected:
+        raise UsvcError(f"--camera {model} takes {expected} parameters ({CAMERA_PARAMS[model]}), got {count}")
+    return model, tuple(float(t) for t in rest[:count]), rest[count:]
+
+
+def _expand_photos(args: list[str]) -> list[tuple[str, Path]]:
+    """(name, path) per photo: files as given, folders as their images sorted by name."""
+    from usvc.importers import IMAGE_SUFFIXES
+
+    photos: list[tuple[str, Path]] = []
+    for arg in args:
+        path = Path(arg)
+        if path.is_dir():
+            images = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                            key=lambda p: p.name)
+            if not images:
+                raise UsvcError(f"folder {arg} has no images ({' '.join(IMAGE_SUFFIXES)})")
+            photos += [(str(p), p) for p in images]
+        elif path.is_file():
+            photos.append((arg, path))
+        else:
+            raise UsvcError(f"image not found: {arg}")
+    if not photos:
+        raise UsvcError("no photos given")
+    return photos
+
+
+def _formats(args: argparse.Namespace) -> list[str]:
+    from usvc.exports import FORMATS
+
+    if args.out_dir is None:
+        if args.format:
+            raise UsvcError("--format needs --out-dir")
+        return []
+    chosen = [f.strip() for item in args.format or [",".join(FORMATS)] for f in item.split(",") if f.strip()]
+    for f in chosen:
+        if f not in FORMATS:
+            raise UsvcError(f"--format: unknown format {f!r}; known: {', '.join(FORMATS)}")
+    if Path(args.out_dir).exists() and not Path(args.out_dir).is_dir():
+        raise UsvcError(f"--out-dir {args.out_dir} exists and is not a folder")
+    return list(dict.fromkeys(chosen))
+
+
+def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]] | None, name: str,
+                  path: Path) -> tuple[Camera | None, str]:
+    """The first intrinsics source that applies: --focal, --intrinsics, --camera, EXIF, else none."""
+    from usvc.exif import exif_focal_px, oriented_size
+    from usvc.scene import Camera
+
+    w, h = oriented_size(path)
+    params: tuple[float, ...]
+    if args.focal is not None:
+        flag, source, model, params = "--focal", "focal", "SIMPLE_PINHOLE", (args.focal, w / 2, h / 2)
+    elif args.intrinsics is not None:
+        flag, source, model, params = "--intrinsics", "intrinsics", "PINHOLE", tuple(args.intrinsics)
+    elif camera is not None:
+        flag, source, (model, params) = f"--camera {camera[0]}", "camera", camera
+    elif (focal := exif_focal_px(path)) is not None:
+        flag, source, model, params = "EXIF focal length", "exif", "SIMPLE_PINHOLE", (focal, w / 2, h / 2)
+    else:
+        return None, "estimated"
+    try:
+        cam = Camera(model, w, h, params)
+    except SceneError as e:
+        raise UsvcError(f"{flag} for {name}: {e}") from None
+    cx, cy = cam.principal_point
+    if not (0 < cx < w and 0 < cy < h):
+        raise UsvcError(f"{flag}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image {name}: "
+                        "wrong image size for these intrinsics?")
+    return cam, source
+
+
 def _localize(args: argparse.Namespace) -> int:
     """Localize each photo; the first bad input stops the run with one line on stderr (exit 1).
 
-    Intrinsics and photo paths are checked before the map is loaded, so a typo fails in
-    milliseconds rather than after the network is built.
+    Flags, photo paths, headers and intrinsics are checked before the map is loaded, so a typo
+    fails in milliseconds rather than after the network is built; --out-dir files are written
+    only at the end, each atomically.
     """
-    intrinsics: float | list[float] | None = args.focal if args.focal is not None else args.intrinsics
-    if intrinsics is None:
-        raise UsvcError("intrinsics are missing: give --focal F (pixels, principal point at the "
-                        "image centre) or --intrinsics fx fy cx cy")
-    for photo in args.photos:
-        if not Path(photo).is_file():
-            raise UsvcError(f"image not found: {photo}")
+    from usvc.exports import Posed, check_names, export
 
+    camera = None
+    photo_args = list(args.photos)
+    if args.camera is not None:
+        model, params, swallowed = _split_camera(args.camera)
+        camera, photo_args = (model, params), swallowed + photo_args
+    formats = _formats(args)
+    photos = _expand_photos(photo_args)
+    if formats:
+        check_names(formats, [n for n, _ in photos], [p for _, p in photos])
+    cameras = [_photo_camera(args, camera, name, path) for name, path in photos]
+
+    import cv2
     import torch
+    from tqdm import tqdm
 
+    from usvc.exif import read_image_bgr
     from usvc.relocalizer import Relocalizer, RelocalizeOptions
 
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine)
     relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device)
-    results = []
-    for photo in args.photos:
-        record = {"name": photo, **relocalizer.localize(photo, intrinsics).to_json()}
-        if args.json_list:
-            results.append(record)
-        else:
-            print(json.dumps(record), flush=True)
+    records: list[dict[str, Any]] = []
+    posed: list[Posed] = []
+    bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
+               disable=len(photos) < 2 or not sys.stderr.isatty())
+    for (name, path), (cam, source) in bar:
+        rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
+        estimate = relocalizer.localize(rgb, cam)
+        record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
+        records.append(record)
+        if estimate.success:
+            used = estimate.camera or cam
+            if used is None:
+                raise UsvcError(f"{name}: the relocalizer returned a pose without a camera")
+            posed.append(Posed(name, path, used, estimate.R, estimate.t))
+        if not args.json_list:
+            tqdm.write(json.dumps(record), file=sys.stdout)
+            sys.stdout.flush()
+    bar.close()
+    if formats:
+        export(Path(args.out_dir), formats, records, posed)
     if args.json_list:
-        print(json.dumps(results, indent=2))
+        print(json.dumps(records, indent=2))
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usvc", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at DEBUG level")
+    parser.add_argument("--version", action="version", version=f"usvc {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     pre = sub.add_parser("pretrain-encoder", help="pretrain an encoder on generated rooms (rebuilds weights/)")
@@ -88,9 +218,14 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--encoder-weights",
                      help="encoder the map was trained on (default: the shipped one of the map's width)")
     intr = loc.add_mutually_exclusive_group()
-    intr.add_argument("--focal", type=float, help="focal length in pixels of the photo as given")
+    intr.add_argument("--focal", type=float,
+                      help="focal length in pixels of the photo as shown (EXIF orientation applied)")
     intr.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
-                      help="pinhole intrinsics in pixels (COLMAP convention) of the photo as given")
+                      help="pinhole intrinsics in pixels (COLMAP convention) of the photo as shown")
+    intr.add_argument("--camera", nargs="+", metavar=("MODEL", "PARAM"),
+                      help="a COLMAP camera model and its parameters in COLMAP order, e.g. OPENCV fx fy cx cy "
+                           "k1 k2 p1 p2 (distortion is undone before localizing). Without any of these the "
+                           "focal length comes from the photo's EXIF, else it is estimated with the pose")
     loc.add_argument("--backend", choices=("opencv", "pycolmap"), default="opencv",
                      help="RANSAC-PnP solver")
     loc.add_argument("--max-error-px", type=float, default=10.0,
@@ -100,7 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--device", default="cpu")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")
-    loc.add_argument("photos", nargs="+", metavar="PHOTO")
+    loc.add_argument("--out-dir", help="also write the results here (files replaced atomically at the end)")
+    loc.add_argument("--format", action="append", metavar="FORMAT[,FORMAT]",
+                     help="what --out-dir gets (repeatable; default all): jsonl (queries.jsonl), poses "
+                          "(poses.txt), colmap (cameras.txt, images.txt, points3D.txt: a COLMAP text model), "
+                          "nerfstudio (transforms.json); failed photos are only in queries.jsonl")
+    loc.add_argument("photos", nargs="*", metavar="PHOTO", help="image files and/or folders of images")
     # Library INFO logs (map/encoder loaded) would bury the JSON and the one-line errors.
     loc.set_defaults(run=_localize, log_level=logging.WARNING)
     return parser
@@ -110,9 +250,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else getattr(args, "log_level", logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    quiet_third_party(verbose=args.verbose)
     try:
         return int(args.run(args))
-    except (UsvcError, ModelError) as err:
+    except (UsvcError, OSError) as err:  # UsvcError covers ModelError (bad map/weights files)
         print(f"usvc {args.command}: error: {err}", file=sys.stderr)
         return 1
 

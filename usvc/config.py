@@ -179,7 +179,7 @@ class Config:
 
 
 _CHOICES: dict[str, tuple[str, ...]] = {
-    "scene.format": ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge"),
+    "scene.format": ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge", "images"),
     "scene.split": ("given", "every_nth"),
     "scene.undistort_fov": ("crop", "full"),
     "sfm.matching": ("auto", "exhaustive", "sequential", "poses"),

@@ -8,6 +8,7 @@ only. Poses are unchanged by undistortion, so metrics still score against the im
 from __future__ import annotations
 
 import logging
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,8 +17,11 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.errors import SceneError
+from usvc.exif import read_image_bgr
 from usvc.scene import Frame, Scene
-from usvc.scene_io import IMAGE_DIR, SCENE_FILE, write_scene_h5
+from usvc.posing import pose_scene
+from usvc.scene_io import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
+from usvc.sfm import SfmOptions
 from usvc.undistort import undistort
 
 log = logging.getLogger(__name__)
@@ -30,13 +34,6 @@ def working_size(width: int, height: int, working_width: int) -> tuple[int, int]
     return working_width, max(1, round(height * working_width / width))
 
 
-def _read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise SceneError(f"cannot read image {path} (missing, empty or not an image)")
-    return image
-
-
 def _read_depth(frame: Frame) -> np.ndarray | None:
     if frame.depth_path is None or not Path(frame.depth_path).is_file():
         return None
@@ -46,18 +43,28 @@ def _read_depth(frame: Frame) -> np.ndarray | None:
     return raw.astype(np.float32) * np.float32(frame.depth_scale)
 
 
-def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop") -> dict:
+def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop",
+                  sfm: SfmOptions | None = None) -> dict:
     """Write undistorted, resized images and scene.h5 into `out_dir` (which must be empty).
 
     `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
-    :mod:`usvc.undistort`. Returns summary figures for the stage's metrics file.
+    :mod:`usvc.undistort`. A scene without poses is first posed by SfM (:mod:`usvc.posing`,
+    options `sfm`) on its photos at working resolution, then undistorted with the calibrated
+    cameras. Returns summary figures for the stage's metrics file.
     """
+    if not scene.has_poses:
+        return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm)
+    return _write_prepared(scene, out_dir, working_width, undistort_fov)
+
+
+def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str) -> dict:
+    """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth)."""
     scene.split("train")
     scene.split("test")
     out_frames: list[Frame] = []
     depths: list[np.ndarray | None] = []
     for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
-        image, camera = undistort(_read_image(frame.image_path), frame.camera, undistort_fov,
+        image, camera = undistort(read_image_bgr(frame.image_path), frame.camera, undistort_fov,
                                   where=str(frame.image_path))
         depth = _read_depth(frame)
         if depth is not None and frame.camera.has_distortion:
@@ -76,7 +83,7 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov
             depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
         depths.append(depth)
         out_frames.append(replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None))
-    prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir)
+    prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
     write_scene_h5(out_dir / SCENE_FILE, prepared, depths, source_cameras=[f.camera for f in scene.frames])
     n_train = len(prepared.split("train"))
     stats = {
@@ -92,3 +99,24 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov
     }
     log.info("prepared %s: %s", scene.name, stats)
     return stats
+
+
+def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
+                     sfm: SfmOptions | None) -> dict:
+    if sfm is None:
+        raise SceneError(f"scene {scene.name!r} has no poses: preparing it needs SfM options")
+    with tempfile.TemporaryDirectory(prefix="usvc-posing-") as work:
+        resized_dir = Path(work) / "resized"
+        resized_dir.mkdir()
+        _write_prepared(scene, resized_dir, working_width, undistort_fov)
+        resized = read_scene_h5(resized_dir)
+        # SfM calibrates the importer's camera model (SIMPLE_RADIAL): keep it, at working size
+        source = {f.name: f for f in scene.frames}
+        resized = replace(resized, frames=[
+            replace(f, camera=source[f.name].camera.scaled(f.camera.width, f.camera.height),
+                    focal_known=source[f.name].focal_known) for f in resized.frames])
+        posed, missing = pose_scene(resized, resized_dir / IMAGE_DIR, Path(work), sfm)
+        stats = _write_prepared(posed, out_dir, 0, undistort_fov)
+    cams = sorted({f.camera for f in posed.frames}, key=lambda c: c.params)
+    return {**stats, "pose_source": "sfm", "unposed": missing, "photos": len(scene.frames),
+            "sfm_cameras": [{"model": c.model, "params": [round(v, 6) for v in c.params]} for c in cams]}

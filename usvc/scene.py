@@ -126,6 +126,7 @@ class Frame:
     t: np.ndarray | None = None
     depth_path: Path | None = None
     depth_scale: float = 1.0  # depth file value times this = depth in scene units
+    focal_known: bool = True  # False: the focal length is a guess for SfM to estimate (no EXIF)
 
     def __post_init__(self) -> None:
         if self.split not in SPLITS:
@@ -159,6 +160,7 @@ class Scene:
     frames: list[Frame]
     metric_scale: float | None = None
     root: Path = field(default_factory=Path)
+    pose_source: str = "given"  # "given" by the capture, or "sfm": estimated here (pseudo ground truth)
 
     def __post_init__(self) -> None:
         if not self.frames:

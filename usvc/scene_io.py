@@ -49,6 +49,7 @@ def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | N
         h5.attrs["name"] = scene.name
         h5.attrs["metric_scale"] = np.nan if scene.metric_scale is None else scene.metric_scale
         h5.attrs["has_poses"] = scene.has_poses
+        h5.attrs["pose_source"] = scene.pose_source
         str_dt = h5py.string_dtype()
         h5.create_dataset("name", data=np.array([f.name for f in scene.frames], dtype=object), dtype=str_dt)
         h5.create_dataset("split", data=np.array([f.split for f in scene.frames], dtype=object), dtype=str_dt)
@@ -82,6 +83,7 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
         cameras = _cameras_from(_strings(h5["camera_model"]), h5["camera_size"][()], h5["camera_params"][()])
         R, t = h5["R_world_to_cam"][()], h5["t_world_to_cam"][()]
         has_poses = bool(h5.attrs["has_poses"])
+        pose_source = str(h5.attrs.get("pose_source", "given"))
         scale = float(h5.attrs["metric_scale"])
         name = str(h5.attrs["name"])
     frames = []
@@ -90,7 +92,8 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
             name=fname, image_path=prepared_dir / IMAGE_DIR / fname, camera=cameras[i], split=splits[i],
             R=R[i] if has_poses else None, t=t[i] if has_poses else None,
         ))
-    return Scene(name=name, frames=frames, metric_scale=None if np.isnan(scale) else scale, root=prepared_dir)
+    return Scene(name=name, frames=frames, metric_scale=None if np.isnan(scale) else scale, root=prepared_dir,
+                 pose_source=pose_source)
 
 
 def read_source_cameras(prepared_dir: Path) -> list[Camera] | None:

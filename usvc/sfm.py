@@ -46,6 +46,11 @@ def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
     """Cameras, rigs, frames and images in name order, so image ids (which orient every pair in
     geometric verification) do not depend on which extraction thread finishes first."""
     camera_ids: dict[tuple, int] = {}
+    # A camera's focal length is a prior (verify with essential matrices, refine in BA) unless
+    # some photo of it had to guess one (no EXIF): then COLMAP estimates it.
+    known: dict[tuple, bool] = defaultdict(lambda: True)
+    for f in frames:
+        known[_camera_key(f)] &= f.focal_known
     db = pycolmap.Database.open(db_path)
     try:
         for k, f in enumerate(sorted(frames, key=lambda f: f.name), start=1):
@@ -55,7 +60,7 @@ def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
                 c = f.camera
                 cam = pycolmap.Camera(model=c.model, width=c.width, height=c.height, params=list(c.params),
                                       camera_id=cid)
-                cam.has_prior_focal_length = True  # known intrinsics: verify with essential matrices
+                cam.has_prior_focal_length = known[key]
                 db.write_camera(cam, use_camera_id=True)
                 rig = pycolmap.Rig()
                 rig.rig_id = cid

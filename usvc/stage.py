@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from usvc.atomic import atomic_file
 from usvc.config import validate
+from usvc.logs import quiet_third_party
 from usvc.errors import UsvcError
 from usvc.paths import ScenePaths
 
@@ -47,6 +48,7 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
     def wrapper(cfg: DictConfig) -> None:
         try:
             validate(cfg)
+            quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG))
             log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
             fn(cfg)
         except UsvcError as err:

@@ -14,13 +14,13 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from usvc.errors import SceneError
+from usvc.exif import oriented_size
 from usvc.geometry import quat_wxyz_to_matrix
 from usvc.scene import Camera, Frame, Scene, every_nth_split
 
-FORMATS = ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge")
+FORMATS = ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge", "images")
 SPLIT_RULES = ("given", "every_nth")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 _MODULES = {
@@ -30,6 +30,7 @@ _MODULES = {
     "ace": "ace_layout",
     "7scenes": "seven_scenes",
     "cambridge": "cambridge",
+    "images": "photos",
 }
 
 
@@ -83,14 +84,10 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header; cheap because PIL decodes lazily."""
-    try:
-        with Image.open(path) as im:
-            return int(im.width), int(im.height)
-    except FileNotFoundError:
-        raise SceneError(f"missing image {path}") from None
-    except (OSError, UnidentifiedImageError, ValueError) as e:
-        raise SceneError(f"{path}: unreadable image ({e})") from None
+    """(width, height) as the photo is shown (EXIF orientation applied), from the header only."""
+    if not Path(path).is_file():
+        raise SceneError(f"missing image {path}")
+    return oriented_size(path)
 
 
 def read_matrix_txt(path: Path) -> np.ndarray:

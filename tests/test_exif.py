@@ -1,0 +1,112 @@
+"""EXIF orientation and focal length, on small photos written with Pillow."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image, ImageOps
+from PIL.TiffImagePlugin import IFDRational
+
+from usvc.errors import SceneError
+from usvc.exif import exif_focal_px, oriented_size, read_image_bgr
+
+W, H = 64, 48
+
+
+def photo(path: Path, orientation: int | None = None, size: tuple[int, int] = (W, H),
+          **exif_tags: float | int | IFDRational) -> Path:
+    """A smooth image (JPEG keeps it; any flip or turn changes it) with the given orientation and
+    Exif IFD tags (keyword names are hex tag ids)."""
+    y, x = np.mgrid[0:size[1], 0:size[0]]
+    pixels = np.stack([x * 255 // size[0], y * 255 // size[1], (x + 2 * y) * 255 // (size[0] + 2 * size[1])],
+                      axis=-1).astype(np.uint8)
+    exif = Image.Exif()
+    if orientation is not None:
+        exif[0x0112] = orientation
+    ifd = exif.get_ifd(0x8769)
+    for tag, value in exif_tags.items():
+        ifd[int(tag, 16)] = value
+    Image.fromarray(pixels).save(path, exif=exif, **({"quality": 95} if path.suffix == ".jpg" else {}))
+    return path
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_read_image_applies_orientation_like_viewers(tmp_path: Path, orientation: int) -> None:
+    png = photo(tmp_path / f"o{orientation}.png", orientation)
+    expected = np.asarray(ImageOps.exif_transpose(Image.open(png)).convert("RGB"))[..., ::-1]
+    for path in (png, photo(tmp_path / f"o{orientation}.jpg", orientation),
+                 photo(tmp_path / f"o{orientation}.tif", orientation)):
+        bgr = read_image_bgr(path)
+        assert bgr.dtype == np.uint8 and bgr.flags.c_contiguous and bgr.shape == expected.shape, path
+        assert oriented_size(path) == (bgr.shape[1], bgr.shape[0])
+        diff = np.abs(bgr.astype(int) - expected.astype(int))
+        if path.suffix == ".jpg":  # lossy: compare loosely
+            assert diff.mean() < 3, path
+        else:  # PNG, and TIFF (decoded by Pillow)
+            assert diff.max() == 0, path
+
+
+def test_orientation_6_is_portrait(tmp_path: Path) -> None:
+    path = photo(tmp_path / "portrait.jpg", 6)
+    assert oriented_size(path) == (H, W)
+    assert read_image_bgr(path).shape == (W, H, 3)
+    assert cv2.imread(str(path)).shape == (W, H, 3)  # plain cv2.imread turns JPEGs the same way
+    assert oriented_size(photo(tmp_path / "plain.jpg")) == (W, H)
+
+
+@pytest.mark.parametrize("make", [lambda p: p.write_bytes(b"not an image"), lambda p: None],
+                         ids=["garbage", "missing"])
+def test_unreadable_files_name_the_file(tmp_path: Path, make) -> None:
+    path = tmp_path / "bad.jpg"
+    make(path)
+    for fn in (oriented_size, read_image_bgr, exif_focal_px):
+        with pytest.raises(SceneError, match="bad.jpg"):
+            fn(path)
+
+
+def test_focal_from_35mm_equivalent(tmp_path: Path) -> None:
+    # 36 mm on the long side: a 36 mm equivalent lens has f = the long side in pixels.
+    assert exif_focal_px(photo(tmp_path / "a.jpg", A405=36)) == pytest.approx(W)
+    assert exif_focal_px(photo(tmp_path / "b.jpg", A405=27)) == pytest.approx(27 / 36 * W)
+    # Portrait (orientation 6): still the long side.
+    assert exif_focal_px(photo(tmp_path / "c.jpg", 6, A405=27)) == pytest.approx(27 / 36 * W)
+    # 35 mm equivalent wins over the sensor resolution.
+    assert exif_focal_px(photo(tmp_path / "d.jpg", A405=27, **{"920A": IFDRational(4), "A20E": IFDRational(1000),
+                                                             "A210": 4})) == pytest.approx(27 / 36 * W)
+
+
+@pytest.mark.parametrize("unit, per_unit_mm", [(2, 25.4), (3, 10.0), (4, 1.0), (None, 25.4)],
+                         ids=["inch", "cm", "mm", "default-inch"])
+def test_focal_from_sensor_resolution(tmp_path: Path, unit: int | None, per_unit_mm: float) -> None:
+    # A 4 mm lens on a sensor with 10 px/mm: 40 px.
+    tags = {"920A": IFDRational(4, 1), "A20E": IFDRational(int(10 * per_unit_mm * 100), 100)}
+    if unit is not None:
+        tags["A210"] = unit
+    assert exif_focal_px(photo(tmp_path / "s.jpg", **tags)) == pytest.approx(40.0)
+    # The same EXIF on a copy downscaled from a 128x96 original: half the pixels, half the focal.
+    tags.update({"A002": 128, "A003": 96})
+    assert exif_focal_px(photo(tmp_path / "t.jpg", **tags)) == pytest.approx(20.0)
+
+
+@pytest.mark.parametrize("tags", [
+    {},
+    {"A405": 0},
+    {"920A": IFDRational(4)},  # no sensor resolution
+    {"920A": IFDRational(0), "A20E": IFDRational(1000), "A210": 2},
+    {"920A": IFDRational(4), "A20E": IFDRational(1, 0), "A210": 2},  # rational with a zero denominator
+    {"920A": IFDRational(4), "A20E": IFDRational(1000), "A210": 1},  # unit "none"
+    {"920A": IFDRational(-4), "A20E": IFDRational(1000), "A210": 2},
+], ids=["none", "35mm-zero", "no-resolution", "zero-focal", "nan-resolution", "no-unit", "negative"])
+def test_focal_absent_or_nonsensical_is_none(tmp_path: Path, tags: dict) -> None:
+    assert exif_focal_px(photo(tmp_path / "n.jpg", **tags)) is None
+
+
+def test_png_without_exif(tmp_path: Path) -> None:
+    path = tmp_path / "plain.png"
+    Image.new("RGB", (W, H)).save(path)
+    assert exif_focal_px(path) is None and oriented_size(path) == (W, H)
+    assert read_image_bgr(path).shape == (H, W, 3) and not math.isnan(read_image_bgr(path).mean())
