@@ -110,3 +110,20 @@ def test_png_without_exif(tmp_path: Path) -> None:
     Image.new("RGB", (W, H)).save(path)
     assert exif_focal_px(path) is None and oriented_size(path) == (W, H)
     assert read_image_bgr(path).shape == (H, W, 3) and not math.isnan(read_image_bgr(path).mean())
+
+
+def test_truncated_jpeg_is_one_clear_error_not_grey_pixels(tmp_path: Path) -> None:
+    """Decoders fill a cut-off JPEG with grey and carry on; usvc refuses it by name."""
+    from usvc.exif import jpeg_is_complete
+
+    whole = photo(tmp_path / "whole.jpg", orientation=6, size=(160, 120), **{"a405": 28})
+    data = whole.read_bytes()
+    assert jpeg_is_complete(data) and jpeg_is_complete(data + b"motion-photo video" * 100)
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    assert not jpeg_is_complete(cut.read_bytes())
+    with pytest.raises(SceneError, match=r"cannot decode image .*cut\.jpg: truncated or corrupt JPEG"):
+        read_image_bgr(cut)
+    progressive = tmp_path / "progressive.jpg"
+    Image.open(whole).save(progressive, progressive=True, quality=90)
+    assert read_image_bgr(progressive).shape == (120, 160, 3)

@@ -144,3 +144,16 @@ def test_unposed_office_photos_match_the_given_poses(tmp_path: Path) -> None:
     assert stats["frames"] == 64 and not stats["unposed"]
     assert stats["sfm_cameras"][0]["model"] == "SIMPLE_RADIAL"
     _check_posed(out, read_scene_h5(given_dir).frames, stats, rot_deg=1.0, centre_frac=0.02)
+
+
+def test_a_corrupt_photo_in_an_images_scene_is_named_and_nothing_is_written(tmp_path: Path) -> None:
+    for i in range(3):
+        photo(tmp_path / f"{i}.jpg", size=(80, 60))
+    data = (tmp_path / "1.jpg").read_bytes()
+    (tmp_path / "1.jpg").write_bytes(data[: len(data) // 2])
+    scene = load_scene("images", tmp_path, "photos", "every_nth", 3)
+    out = tmp_path / "prepared"
+    out.mkdir()
+    with pytest.raises(SceneError, match=r"1\.jpg: truncated or corrupt JPEG"):
+        prepare_scene(scene, out, working_width=0, sfm=OPTS)
+    assert not any(out.iterdir())

@@ -133,6 +133,42 @@ def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(ops[orientation](image))
 
 
+def jpeg_is_complete(data: bytes) -> bool:
+    """Whether a JPEG stream reaches its end-of-image marker (decoders fill a truncated file with
+    grey without failing). Walks the marker segments and entropy-coded scans; bytes after the end
+    marker (phones append motion-photo video there) are not looked at."""
+    if data[:2] != b"\xff\xd8":
+        return True  # not a JPEG stream: nothing to say
+    pos, n = 2, len(data)
+    while pos < n:
+        if data[pos] != 0xFF:
+            return False  # lost sync: a corrupt stream
+        while pos < n and data[pos] == 0xFF:  # fill bytes
+            pos += 1
+        if pos >= n:
+            return False
+        marker = data[pos]
+        pos += 1
+        if marker == 0xD9:
+            return True
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:
+            continue
+        if pos + 2 > n:
+            return False
+        pos += (data[pos] << 8) | data[pos + 1]
+        if marker == 0xDA:  # entropy-coded data up to the next marker that is not a stuffed 0xFF00 or RST
+            while True:
+                pos = data.find(b"\xff", pos)
+                if pos < 0 or pos + 1 >= n:
+                    return False
+                nxt = data[pos + 1]
+                if nxt == 0x00 or 0xD0 <= nxt <= 0xD7:
+                    pos += 2
+                    continue
+                break
+    return False
+
+
 def read_image_bgr(path: str | Path) -> np.ndarray:
     """uint8 HxWx3 BGR pixels with the EXIF orientation applied (the size oriented_size gives).
 
@@ -148,6 +184,8 @@ def read_image_bgr(path: str | Path) -> np.ndarray:
             orientation, fmt = _orientation(_exif(img)), img.format
     except (OSError, UnidentifiedImageError, ValueError):
         orientation, fmt = 1, None  # OpenCV may still decode it
+    if fmt == "JPEG" and not jpeg_is_complete(path.read_bytes()):
+        raise SceneError(f"cannot decode image {path}: truncated or corrupt JPEG (no end-of-image marker)")
     if fmt != "TIFF":
         with _quiet_opencv():
             bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from usvc.errors import UsvcError
+from usvc.exif import read_image_bgr
 from usvc.evaluation.pnp import BACKENDS, estimate_focal, solve_pnp
 from usvc.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
@@ -142,14 +142,8 @@ def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> C
 
 def _as_gray(image: np.ndarray | str | Path) -> np.ndarray:
     """Path or uint8 RGB/grey array -> float luma in [0, 1]."""
-    if isinstance(image, (str, Path)):
-        path = Path(image)
-        if not path.is_file():
-            raise UsvcError(f"image not found: {path}")
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise UsvcError(f"cannot decode image {path}")
-        return luma01(bgr, rgb=False)
+    if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
+        return luma01(read_image_bgr(image), rgb=False)
     arr = np.asarray(image)
     if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
         raise UsvcError(f"image must be a uint8 HxW or HxWx3 RGB array, got {arr.dtype} {arr.shape}")

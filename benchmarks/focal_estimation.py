@@ -1,0 +1,63 @@
+"""What does not knowing the query's focal length cost? Localize each query of a prepared scene
+twice with the same map: with its calibrated focal length, and with ``intrinsics=None`` (focal
+estimated with the pose, pycolmap P4Pf + refinement, principal point at the image centre).
+
+Prints (and with ``--out`` writes) JSON: the usual accuracy summary for both, and the relative
+focal error of the estimate per query. Run after the relocalize stage of a scene, e.g.
+python benchmarks/focal_estimation.py --scene-dir data/office --out focal_office.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from usvc.evaluation import rotation_error_deg, summarize, translation_error  # noqa: E402
+from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.relocalizer import Relocalizer  # noqa: E402
+from usvc.scene_io import read_scene_h5  # noqa: E402
+from usvc.tracks import read_tracks  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene-dir", type=Path, required=True, help="data/<scene> with prepared/, sfm/, map/")
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    scene = read_scene_h5(args.scene_dir / "prepared")
+    depth = median_scene_depth(read_tracks(args.scene_dir / "sfm" / "tracks.h5"))
+    reloc = Relocalizer(args.scene_dir / "map" / "map.pt")
+    queries = scene.split("test")
+    report: dict = {"scene_dir": str(args.scene_dir), "n_queries": len(queries), "threads": args.threads}
+    focal_err = []
+    for mode in ("known", "estimated"):
+        rot, tr, failed, ms = [], [], [], []
+        for f in queries:
+            K = f.camera.params if mode == "known" else None
+            est = reloc.localize(f.image_path, tuple(K) if K is not None else None)
+            failed.append(not est.success)
+            rot.append(float(rotation_error_deg(est.R, f.R)) if est.success else np.inf)
+            tr.append(float(translation_error(est.R, est.t, f.R, f.t)) if est.success else np.inf)
+            ms.append(1e3 * est.seconds["total"])
+            if mode == "estimated" and est.camera is not None:
+                focal_err.append(abs(est.camera.params[0] / f.camera.params[0] - 1))
+        report[mode] = summarize(rot, tr, scene.metric_scale, depth, failed, float(np.mean(ms)))
+    report["focal_rel_error_median"] = float(np.median(focal_err)) if focal_err else None
+    report["focal_rel_error_max"] = float(np.max(focal_err)) if focal_err else None
+    text = json.dumps(report, indent=1)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
