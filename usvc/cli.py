@@ -1,5 +1,5 @@
-"""`usvc` command line: localize photos against a map (and export the poses), and rebuild the
-shipped encoders."""
+"""`usvc` command line: build a map from a folder of photos, localize photos against a map (and
+export the poses), and rebuild the shipped encoders."""
 
 from __future__ import annotations
 
@@ -45,6 +45,23 @@ def _pretrain(args: argparse.Namespace) -> int:
 CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
                  "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
                  "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4", "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6"}
+
+
+def _map(args: argparse.Namespace) -> int:
+    """Add the scene to the checkout around the working directory, then run its pipeline."""
+    from usvc.new_scene import NewSceneOptions, add_scene, find_checkout, repro
+
+    checkout = find_checkout(Path.cwd())
+    opts = NewSceneOptions(args.name, args.format, args.split_n, args.working_width, args.metric_scale)
+    added = add_scene(Path(args.source), checkout, opts)
+    print(json.dumps(added))
+    if args.no_run:
+        return 0
+    code = repro(checkout, args.name)
+    if code == 0:
+        print(f"map: {checkout / 'data' / args.name / 'map' / 'map.pt'}; "
+              f"metrics: {checkout / 'results' / args.name / 'metrics.json'}", file=sys.stderr)
+    return code
 
 
 def _version() -> str:
@@ -212,6 +229,17 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="override a PretrainOptions field, e.g. --set iterations=2000")
     pre.set_defaults(run=_pretrain)
+
+    mp = sub.add_parser("map", help="add a folder of photos (or a posed capture) as a scene and build its map")
+    mp.add_argument("source", metavar="PHOTOS", help="folder of photos (format images) or of a capture")
+    mp.add_argument("--name", required=True, help="scene name: lower-case letters, digits, _")
+    mp.add_argument("--format", default="images",
+                    help="images (photos only, posed by SfM; default) | llff | transforms | colmap | ace | 7scenes | cambridge")
+    mp.add_argument("--split-n", type=int, default=8, help="every N-th photo is a query, never trained on")
+    mp.add_argument("--working-width", type=int, default=640, help="images are resized to this width (0 keeps it)")
+    mp.add_argument("--metric-scale", type=float, help="metres per scene unit, when the poses are metric")
+    mp.add_argument("--no-run", action="store_true", help="only add the scene; run `dvc repro metrics@NAME` later")
+    mp.set_defaults(run=_map)
 
     loc = sub.add_parser("localize", help="estimate the camera pose of photos against a trained map")
     loc.add_argument("--map", required=True, help="map file written by the train stage (.pt)")
