@@ -107,8 +107,10 @@ def test_localize_without_refinement(files: dict[str, Path]) -> None:
     (["--focal", "130", "--encoder-weights", "{other_weights}"], "photo", "another encoder"),
     (["--focal", "130", "--map", "{truncated}"], "photo", "corrupt or truncated"),
     (["--focal", "130", "--map", "{missing_map}"], "photo", "map file does not exist"),
+    (["--focal", "130", "--min-confidence", "1.5"], "photo", "--min-confidence 1.5: must be in [0, 1]"),
+    (["--focal", "130", "--focal-tolerance", "-1"], "photo", "--focal-tolerance -1: must be >= 0"),
 ], ids=["wrong-size", "missing-photo", "undecodable", "other-encoder", "truncated-map",
-        "missing-map"])
+        "missing-map", "confidence-range", "focal-tolerance-range"])
 def test_localize_errors(files: dict[str, Path], extra: list[str], photo: str, cause: str) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"],
                 *(arg.format(**files) for arg in extra), files[photo])

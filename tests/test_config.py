@@ -60,3 +60,24 @@ def test_stage_reports_bad_config_in_one_line():
     assert proc.returncode == 1
     assert "keypoints.weights='foo'" in proc.stderr + proc.stdout
     assert "Traceback" not in proc.stderr + proc.stdout
+
+
+def test_relocalizer_defaults_are_the_configured_ones():
+    """The CLI and the Python API use RelocalizeOptions' defaults; the pipeline uses
+    conf/relocalize/default.yaml. Both must hold the same (calibrated) values."""
+    from usvc.relocalizer import RelocalizeOptions
+
+    configured = yaml.safe_load((REPO / "conf/relocalize/default.yaml").read_text())
+    defaults = RelocalizeOptions()
+    for key, value in configured.items():
+        if key != "defaults":
+            assert getattr(defaults, key) == value, key
+
+
+@pytest.mark.parametrize("override, message", [
+    ("relocalize.min_confidence=1.5", "relocalize.min_confidence=1.5 must be in"),
+    ("relocalize.focal_tolerance=-0.1", "relocalize.focal_tolerance=-0.1 must be >= 0"),
+])
+def test_relocalize_thresholds_are_checked(override, message):
+    with pytest.raises(ConfigError, match=message):
+        validate(_compose([override]))

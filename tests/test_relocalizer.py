@@ -7,6 +7,7 @@ decoding, resizing to the map's resolution, intrinsics scaling, cell centres, Pn
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -130,6 +131,47 @@ def test_outliers_lower_confidence(tiny_map: tuple[Path, Path], monkeypatch: pyt
     est = Relocalizer(*tiny_map).localize(photo(160, 120), WORK_CAMERA)
     assert_true_pose(est)
     assert 0.5 < est.confidence < 0.9
+
+
+def test_low_confidence_answers_are_failures_with_a_reason(tiny_map: tuple[Path, Path],
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """70 % of the cells are outliers: RANSAC still finds the pose from the other 30 %; the
+    answer is kept below min_confidence and reported as a failure (no pose) above it."""
+    def mostly_wrong(self: Relocalizer, gray01: np.ndarray) -> np.ndarray:
+        rng = np.random.default_rng(1)
+        coords = exact_coordinates(15, 20)
+        bad = rng.random((15, 20)) < 0.7
+        coords[bad] = rng.uniform(-3.0, 3.0, (int(bad.sum()), 3))
+        return coords
+
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", mostly_wrong)
+    kept = Relocalizer(*tiny_map, options=RelocalizeOptions(min_confidence=0.1)).localize(photo(160, 120), WORK_CAMERA)
+    assert_true_pose(kept)
+    assert 0.2 < kept.confidence < 0.4 and not kept.rejected
+    refused = Relocalizer(*tiny_map, options=RelocalizeOptions(min_confidence=0.5)).localize(photo(160, 120),
+                                                                                              WORK_CAMERA)
+    assert not refused.success and np.isnan(refused.R).all() and np.isnan(refused.t).all()
+    assert refused.confidence == pytest.approx(kept.confidence)
+    assert refused.rejected == f"confidence {kept.confidence:.3f} < min_confidence 0.5"
+    record = refused.to_json()
+    assert record["success"] is False and "q_wxyz" not in record and record["rejected"] == refused.rejected
+
+
+@pytest.mark.parametrize("factor, ok", [(1.0, True), (1.15, True), (2.0, False), (0.5, False)])
+def test_a_focal_length_the_map_contradicts_is_a_failure(tiny_map: tuple[Path, Path], exact: list,
+                                                         factor: float, ok: bool) -> None:
+    """Exact scene coordinates imply the true focal length; a given one 2x off is refused by name,
+    one within the tolerance is used."""
+    (fx, fy), (cx, cy) = WORK_CAMERA.focal, WORK_CAMERA.principal_point
+    reloc = Relocalizer(*tiny_map, options=RelocalizeOptions(focal_tolerance=0.25))
+    est = reloc.localize(photo(160, 120), (fx * factor, fy * factor, cx, cy))
+    assert est.success is ok
+    if ok:
+        assert not est.rejected
+    else:
+        implied = re.match(r"the image implies a focal length ([0-9.]+)x the given one \(tolerance 0.25\)", est.rejected)
+        assert implied and float(implied.group(1)) == pytest.approx(1 / factor, rel=0.1), est.rejected
+        assert np.isnan(est.R).all() and est.confidence > 0
 
 
 @pytest.mark.parametrize("model,params", [

@@ -8,7 +8,7 @@ import importlib.metadata
 import json
 import logging
 import sys
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -190,6 +190,14 @@ def _localize(args: argparse.Namespace) -> int:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine)
+    if args.min_confidence is not None:
+        if not 0.0 <= args.min_confidence <= 1.0:
+            raise UsvcError(f"--min-confidence {args.min_confidence:g}: must be in [0, 1]")
+        options = replace(options, min_confidence=args.min_confidence)
+    if args.focal_tolerance is not None:
+        if args.focal_tolerance < 0:
+            raise UsvcError(f"--focal-tolerance {args.focal_tolerance:g}: must be >= 0 (0: no check)")
+        options = replace(options, focal_tolerance=args.focal_tolerance)
     relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device)
     records: list[dict[str, Any]] = []
     posed: list[Posed] = []
@@ -258,6 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="RANSAC-PnP solver")
     loc.add_argument("--max-error-px", type=float, default=10.0,
                      help="RANSAC inlier threshold in pixels at a 480 px short side (scaled to the map's working size)")
+    loc.add_argument("--min-confidence", type=float,
+                     help="answers with a smaller inlier fraction of the cells are failures (default: the "
+                          "calibrated relocalize.min_confidence, see docs/confidence.md; 0 keeps every pose)")
+    loc.add_argument("--focal-tolerance", type=float,
+                     help="refuse a pose when the given focal length differs by more than this (relative) from "
+                          "the one the map implies (default: relocalize.focal_tolerance; 0 = no check)")
     loc.add_argument("--no-refine", action="store_true",
                      help="skip keypoint-guided refinement (method=single); on by default when the map has keypoints")
     loc.add_argument("--device", default="cpu")

@@ -108,6 +108,8 @@ class RelocalizeConfig:
     backend: str = "opencv"  # opencv | pycolmap
     max_error_px: float = 10.0  # RANSAC inlier threshold at a 480 px short side, scaled to the working size
     min_inliers: int = 10
+    min_confidence: float = 0.1  # inlier fraction of the cells below which an answer counts as a failure
+    focal_tolerance: float = 0.25  # relative gap between the given and the map-implied focal length that fails; 0 = off
     refine: bool = True  # keypoint-guided iterative refinement (paper 3.2.2)
     refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
     refine_max_iterations: int = 5  # T_max
@@ -233,6 +235,10 @@ def validate(cfg: Any) -> None:
                    ("buffer.contrast_min", "buffer.contrast_max")):
         if _get(cfg, lo) > _get(cfg, hi):
             raise ConfigError(f"config key {lo}={_get(cfg, lo)!r} exceeds {hi}={_get(cfg, hi)!r}")
+    if not 0 <= cfg.relocalize.min_confidence <= 1:
+        raise ConfigError(f"config key relocalize.min_confidence={cfg.relocalize.min_confidence!r} must be in [0, 1]")
+    if cfg.relocalize.focal_tolerance < 0:
+        raise ConfigError(f"config key relocalize.focal_tolerance={cfg.relocalize.focal_tolerance!r} must be >= 0 (0: no check)")
     if not 0 <= cfg.train.warmup_fraction < 1:
         raise ConfigError(f"config key train.warmup_fraction={cfg.train.warmup_fraction!r} must be in [0, 1)")
     if cfg.buffer.short_side < 0 or cfg.model.head_blocks < 0:

@@ -44,6 +44,9 @@ class RelocalizeOptions:
     max_error_px: float = 10.0  # RANSAC inlier threshold in pixels of an image with a 480 px short side
     reference_short_side: int = 480  # ACE's working short side, where its 10 px threshold was tuned
     min_inliers: int = 10
+    # Calibrated in docs/confidence.md; conf/relocalize/default.yaml holds the same values (a test checks).
+    min_confidence: float = 0.1  # answers whose inlier fraction is lower are reported as failures
+    focal_tolerance: float = 0.25  # given focal vs one estimated from the map (P4Pf): a larger relative gap fails; 0 = off
     seed: int = 0
     refine: bool = True  # keypoint-guided refinement (paper 3.2.2); skipped for maps without keypoints
     refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
@@ -86,11 +89,12 @@ class PoseEstimate:
     refine_kept: bool = False
     camera: Camera | None = None
     focal_estimated: bool = False
+    rejected: str = ""  # why a pose RANSAC found is not trusted (low confidence, or intrinsics the map contradicts)
 
     @property
     def confidence(self) -> float:
-        """Fraction of the image's cells that agree with the pose (0 when it failed)."""
-        return self.inliers / self.cells if self.success and self.cells else 0.0
+        """Fraction of the image's cells that agree with the pose RANSAC found (0 when it found none)."""
+        return self.inliers / self.cells if (self.success or self.rejected) and self.cells else 0.0
 
     @property
     def center(self) -> np.ndarray:
@@ -107,6 +111,8 @@ class PoseEstimate:
             out["refinement"] = {"iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
                                  "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)],
                                  "initial_t": [float(v) for v in self.initial_t]}
+        if self.rejected:
+            out["rejected"] = self.rejected
         if self.camera is not None:
             c = self.camera
             out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
@@ -183,6 +189,21 @@ class Relocalizer:
         out = self.regressor(normalise(gray01).to(self.device))[0]
         return out.permute(1, 2, 0).double().cpu().numpy()
 
+    def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float) -> str:
+        """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
+        imply another one. A wrong focal length can still explain most cells with a wrong pose
+        (a shallow view trades focal length for distance), so confidence alone cannot catch it."""
+        estimate = estimate_focal(pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
+                                  self.options.seed)
+        if estimate is None:
+            return ""  # no opinion: nothing to hold against the given focal length
+        given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
+        ratio = estimate.params[0] / given
+        if abs(np.log(ratio)) <= np.log1p(self.options.focal_tolerance):
+            return ""
+        return (f"the image implies a focal length {ratio:.2f}x the given one "
+                f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")
+
     def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None) -> PoseEstimate:
         """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
         (principal point at the image centre, no distortion); a distorted Camera is undistorted
@@ -220,9 +241,12 @@ class Relocalizer:
         result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                            seed=self.options.seed, min_inliers=self.options.min_inliers,
                            backend=self.options.backend)
+        rejected = ""
+        if result.success and intrinsics is not None and self.options.focal_tolerance > 0:
+            rejected = self._focal_disagreement(pixels, coords, camera, threshold)
         t3 = time.perf_counter()
         R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
-        if result.success and self.refine:
+        if result.success and self.refine and not rejected:
             assert self.keypoints_xyz is not None
             ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
                               max_error_px=threshold, median_depth=self.median_depth,
@@ -234,6 +258,13 @@ class Relocalizer:
         t4 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
                    "total": t4 - t0}
-        return PoseEstimate(result.success, R, t, inliers, hc * wc, seconds, initial_R=result.R.copy(),
-                            initial_t=result.t.copy(), refine_iterations=iterations, refine_kept=kept,
-                            camera=given, focal_estimated=intrinsics is None)
+        if result.success and not rejected and inliers < self.options.min_confidence * hc * wc:
+            # a pose, but one that too few cells agree with: wrong answers look like this
+            rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
+        success = result.success and not rejected
+        if not success:
+            R, t = _nan_R(), _nan_t()
+        return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
+                            initial_R=result.R.copy() if success else _nan_R(),
+                            initial_t=result.t.copy() if success else _nan_t(), refine_iterations=iterations,
+                            refine_kept=kept, camera=given, focal_estimated=intrinsics is None, rejected=rejected)
