@@ -4,7 +4,9 @@ Both arguments are prepared scene folders of the same photos (same names, same s
 imported with its poses, one posed by SfM in the prepare stage. A similarity (Umeyama, on the
 mapping photos' camera centres) brings the SfM frame into the given one; the report gives
 rotation and centre errors per split, centre errors also as a fraction of the scene extent
-(median distance of the centres from their mean). Writes JSON to stdout or ``--out``.
+(median distance of the centres from their mean). With ``--relocalized``, query poses that the
+SfM-posed scene's map produced are mapped by the same similarity into the given frame and scored
+against the given poses (the usual 5° / 3 % of median depth rule). Writes JSON to stdout or ``--out``.
 
 Run: python benchmarks/sfm_posing.py --given data/office/prepared --sfm data/office_photos/prepared
 """
@@ -20,7 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from usvc.evaluation import read_poses_txt, rotation_error_deg, summarize, translation_error  # noqa: E402
 from usvc.evaluation.alignment import align_and_compare  # noqa: E402
+from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.tracks import read_tracks  # noqa: E402
 from usvc.scene_io import read_scene_h5  # noqa: E402
 
 
@@ -36,6 +41,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--given", type=Path, required=True, help="prepared scene with the capture's poses")
     parser.add_argument("--sfm", type=Path, required=True, help="prepared scene posed by SfM")
+    parser.add_argument("--relocalized", type=Path, action="append", default=[],
+                        help="poses.txt of the SfM-posed scene's relocalize stage (repeatable, e.g. one per seed): "
+                             "scored against the given poses after the same similarity")
+    parser.add_argument("--given-sfm", type=Path, help="the given scene's sfm folder (median depth for the 3 %% rule)")
     parser.add_argument("--out", type=Path, help="write the JSON here too")
     args = parser.parse_args()
     given, sfm = read_scene_h5(args.given), read_scene_h5(args.sfm)
@@ -46,6 +55,23 @@ def main() -> None:
               "posed_by_sfm": len(sfm.frames), "scale_given_per_sfm": errors.scale, "extent": errors.extent,
               "mapping": _summary(errors.rotation_deg[is_map], errors.center_error[is_map], errors.extent),
               "query": _summary(errors.rotation_deg[~is_map], errors.center_error[~is_map], errors.extent)}
+    if args.relocalized:
+        if args.given_sfm is None:
+            parser.error("--relocalized needs --given-sfm (the median scene depth of the given poses)")
+        depth = median_scene_depth(read_tracks(args.given_sfm / "tracks.h5"))
+        truth = {f.name: f for f in given.split("test")}
+        runs = []
+        for path in args.relocalized:
+            poses = read_poses_txt(path)
+            rot, tr = [], []
+            for name, f in truth.items():
+                if name not in poses:
+                    rot.append(np.inf), tr.append(np.inf)
+                    continue
+                R, t = errors.similarity.pose(*poses[name])
+                rot.append(float(rotation_error_deg(R, f.R))), tr.append(float(translation_error(R, t, f.R, f.t)))
+            runs.append({"poses": str(path), **summarize(rot, tr, given.metric_scale, depth, None, 0.0)})
+        report["relocalized_in_given_frame"] = runs
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:

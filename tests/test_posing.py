@@ -157,3 +157,18 @@ def test_a_corrupt_photo_in_an_images_scene_is_named_and_nothing_is_written(tmp_
     with pytest.raises(SceneError, match=r"1\.jpg: truncated or corrupt JPEG"):
         prepare_scene(scene, out, working_width=0, sfm=OPTS)
     assert not any(out.iterdir())
+
+
+def test_similarity_maps_poses_into_the_reference_frame() -> None:
+    """A pose of the estimate's frame, mapped by the fitted similarity, is the reference pose."""
+    rng = np.random.default_rng(3)
+    centres = rng.normal(size=(8, 3))
+    rots = Rotation.random(8, random_state=4).as_matrix()
+    ref = _frames(centres, rots)
+    S = Rotation.from_euler("zyx", [10, 70, -30], degrees=True).as_matrix()
+    est = _frames(2.5 * centres @ S.T + [0.3, 0.1, -4.0], rots @ S.T)
+    sim = align_and_compare(est, ref).similarity
+    for e, r in zip(est, ref):
+        R, t = sim.pose(e.R, e.t)
+        np.testing.assert_allclose(R, r.R, atol=1e-9)
+        np.testing.assert_allclose(t, r.t, atol=1e-9)

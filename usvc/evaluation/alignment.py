@@ -14,6 +14,21 @@ from usvc.scene import Frame
 
 
 @dataclass(frozen=True)
+class Similarity:
+    """x_reference = scale * R x_estimate + t."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+
+    def pose(self, R_cam: np.ndarray, t_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A world-to-camera pose of the estimate's frame, expressed in the reference frame."""
+        centre = -R_cam.T @ t_cam
+        R_new = R_cam @ self.R.T
+        return R_new, -R_new @ (self.scale * self.R @ centre + self.t)
+
+
+@dataclass(frozen=True)
 class AlignedErrors:
     """Per-photo errors of ``estimate`` after mapping it into the reference frame."""
 
@@ -22,6 +37,7 @@ class AlignedErrors:
     center_error: np.ndarray  # in reference units
     scale: float  # reference units per estimate unit
     extent: float  # median distance of the reference centres from their mean
+    similarity: Similarity
 
 
 def align_and_compare(estimate: list[Frame], reference: list[Frame], fit_on: set[str] | None = None) -> AlignedErrors:
@@ -50,4 +66,5 @@ def align_and_compare(estimate: list[Frame], reference: list[Frame], fit_on: set
         center_error=np.linalg.norm(mapped - ref_c, axis=1),
         scale=float(sim.scale),
         extent=float(np.median(np.linalg.norm(all_ref - all_ref.mean(0), axis=1))),
+        similarity=Similarity(float(sim.scale), R_sim, np.asarray(sim.translation, dtype=np.float64)),
     )
