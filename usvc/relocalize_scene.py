@@ -57,7 +57,7 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
     total = np.array([r.seconds["total"] for r in results])
     refined = [results[i] for i in ok]  # refinement only runs where the dense solve succeeded
     return {"queries": len(frames), "failed": len(frames) - len(ok),
-            "rejected_low_confidence": sum(bool(r.rejected) for r in results),
+            "rejected": sum(bool(r.rejected) for r in results),  # low confidence or contradicted intrinsics
             "ms_per_query": float(total.mean() * 1000),
             "ms_network": float(np.mean([r.seconds["network"] for r in results]) * 1000),
             "ms_pnp": float(np.mean([r.seconds["pnp"] for r in results]) * 1000),
