@@ -162,16 +162,22 @@ def _solve_opencv(
     return R, tvec.reshape(3), inliers
 
 
-def _solve_pycolmap(
-    p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+def _absolute_pose_options(max_error_px: float, seed: int) -> pycolmap.AbsolutePoseEstimationOptions:
+    """pycolmap's RANSAC settings shared by the pose and the pose-with-focal solvers."""
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = max_error_px
     est.ransac.random_seed = seed
     est.ransac.confidence = _CONFIDENCE
     est.ransac.max_num_trials = _MAX_TRIALS
     est.ransac.min_inlier_ratio = _MIN_INLIER_RATIO
+    return est
+
+
+def _solve_pycolmap(
+    p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    est = _absolute_pose_options(max_error_px, seed)
     ref = pycolmap.AbsolutePoseRefinementOptions()
     res = pycolmap.estimate_and_refine_absolute_pose(p2, p3, cam, est, ref)
     if res is None:
@@ -196,13 +202,8 @@ def estimate_focal(
     # COLMAP's prior for a camera without calibration: 1.2 x the longer side.
     cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=width, height=height,
                           params=[1.2 * max(width, height), width / 2, height / 2])
-    est = pycolmap.AbsolutePoseEstimationOptions()
+    est = _absolute_pose_options(max_error_px, seed)
     est.estimate_focal_length = True
-    est.ransac.max_error = max_error_px
-    est.ransac.random_seed = seed
-    est.ransac.confidence = _CONFIDENCE
-    est.ransac.max_num_trials = _MAX_TRIALS
-    est.ransac.min_inlier_ratio = _MIN_INLIER_RATIO
     ref = pycolmap.AbsolutePoseRefinementOptions()
     ref.refine_focal_length = True
     res = pycolmap.estimate_and_refine_absolute_pose(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]),

@@ -1,4 +1,4 @@
-"""Head training on the buffer with ACE's reprojection loss (mapping, issue 3).
+"""Head training on the buffer with ACE's reprojection loss (mapping).
 
 Depth bounds and the invalid-prediction depth are given in units of the scene's median depth,
 so one configuration serves metric scenes and scenes in arbitrary SfM units alike (ACE's
