@@ -46,7 +46,7 @@ def main(cfg: DictConfig) -> None:
     # "sfm": the queries' poses were estimated by SfM here (pseudo ground truth), not given
     write_json(metrics_path, {**summary, "ground_truth": scene.pose_source,
                               "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
-    headline = "acc_5cm_5deg" if scene.metric_scale is not None else "acc_5deg_3pct"
+    headline = "acc_5cm_5deg" if scene.metric_scale is not None else "acc_rel_5cm_5deg"
     log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg%s",
              scene.name, headline, summary[headline], summary["n_queries"], summary["n_failed"],
              summary["median_rot_deg"],

@@ -10,6 +10,7 @@ from usvc.evaluation import read_poses_txt, rotation_error_deg, summarize, trans
 KEYS = {
     "acc_10cm_5deg", "acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_5deg_3pct", "median_rot_deg",
     "median_trans_cm", "median_trans_rel", "median_trans", "ms_per_query", "n_queries", "n_failed",
+    "acc_rel_5cm_5deg", "acc_rel_2cm_2deg", "acc_rel_1cm_1deg", "median_trans_rel_cm",
 }
 
 
@@ -104,6 +105,22 @@ def test_summarize_without_metric_scale():
     assert s["median_trans_rel"] == pytest.approx(0.025)
     s = summarize([1.0], [0.1], None, None, None, 0.0)
     assert s["acc_5deg_3pct"] is None and s["median_trans_rel"] is None and s["median_trans"] == 0.1
+
+
+def test_depth_relative_thresholds_read_a_scene_like_7_scenes():
+    # a scene scaled to a 1.5 m median depth scores the same at acc_rel_* as at the metric thresholds
+    rot = [0.5, 1.5, 1.5, 4.0, 0.5]
+    trans_m = [0.009, 0.011, 0.019, 0.049, 0.06]
+    metric = summarize(rot, trans_m, metric_scale=1.0, median_depth=1.5, failed=None, ms_per_query=0.0)
+    for scale in (0.01, 1.0, 37.0):  # the same geometry in arbitrary units
+        s = summarize(rot, [t * scale for t in trans_m], metric_scale=None, median_depth=1.5 * scale,
+                      failed=None, ms_per_query=0.0)
+        for cm in (5, 2, 1):
+            assert s[f"acc_rel_{cm}cm_{cm}deg"] == pytest.approx(metric[f"acc_{cm}cm_{cm}deg"]), (scale, cm)
+        assert s["median_trans_rel_cm"] == pytest.approx(metric["median_trans_cm"])
+    assert (metric["acc_rel_5cm_5deg"], metric["acc_rel_2cm_2deg"], metric["acc_rel_1cm_1deg"]) == (0.8, 0.6, 0.2)
+    s = summarize(rot, trans_m, None, None, None, 0.0)
+    assert s["acc_rel_5cm_5deg"] is None and s["median_trans_rel_cm"] is None
 
 
 def test_summarize_rejects_bad_input():

@@ -26,6 +26,15 @@ METRIC_THRESHOLDS: tuple[tuple[str, float, float], ...] = (
     ("acc_1cm_1deg", 0.01, 1.0),
 )
 RELATIVE_THRESHOLD = ("acc_5deg_3pct", 0.03, 5.0)  # fraction of median depth, degrees
+# 7-Scenes' thresholds as fractions of the median scene depth (about 1.5 m there; 5 cm / 1.5 m =
+# 3.33 %, 2 cm = 1.33 %, 1 cm = 0.667 %), so a scene without metric scale reads like 7-Scenes:
+# acc_rel_5cm_5deg is acc_5cm_5deg of the same scene scaled to a 1.5 m median depth.
+REFERENCE_MEDIAN_DEPTH_M = 1.5
+DEPTH_RELATIVE_THRESHOLDS: tuple[tuple[str, float, float], ...] = (
+    ("acc_rel_5cm_5deg", 0.05 / REFERENCE_MEDIAN_DEPTH_M, 5.0),
+    ("acc_rel_2cm_2deg", 0.02 / REFERENCE_MEDIAN_DEPTH_M, 2.0),
+    ("acc_rel_1cm_1deg", 0.01 / REFERENCE_MEDIAN_DEPTH_M, 1.0),
+)
 POSES_HEADER = "# name qw qx qy qz tx ty tz  (world-to-camera, OpenCV axes, Hamilton quaternion)"
 
 
@@ -94,10 +103,15 @@ def summarize(
         out[key] = None if metric_scale is None else float(np.mean((tr * metric_scale < max_m) & (rot < max_deg)))
     key, frac, max_deg = RELATIVE_THRESHOLD
     out[key] = None if median_depth is None else float(np.mean((tr < frac * median_depth) & (rot < max_deg)))
+    for key, frac, max_deg in DEPTH_RELATIVE_THRESHOLDS:
+        out[key] = None if median_depth is None else float(np.mean((tr < frac * median_depth) & (rot < max_deg)))
     med_trans = _median(tr)
     out["median_rot_deg"] = _median(rot)
     out["median_trans_cm"] = None if metric_scale is None else med_trans * metric_scale * 100.0
     out["median_trans_rel"] = None if median_depth is None else med_trans / median_depth
+    # the median translation in centimetres once the scene is scaled to a 1.5 m median depth
+    out["median_trans_rel_cm"] = (None if median_depth is None
+                                  else med_trans / median_depth * REFERENCE_MEDIAN_DEPTH_M * 100.0)
     out["median_trans"] = med_trans
     out["ms_per_query"] = float(ms_per_query)
     out["n_queries"] = int(n)
