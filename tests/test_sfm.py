@@ -130,3 +130,28 @@ def test_incremental_mapping_on_the_miniature_scene_recovers_the_poses(small_min
     truth = {f.name: f.center for f in frames}
     err = [np.linalg.norm(im.projection_center() - truth[im.name]) for im in rec.images.values() if im.has_pose]
     assert np.median(err) < 0.02, f"median centre error {np.median(err):.3f} m"
+
+
+@pytest.mark.slow
+def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small_mini, tmp_path):
+    """The classical baseline: queries matched to the mapping model only; their poses are never read."""
+    from dataclasses import replace
+
+    from usvc.evaluation import rotation_error_deg, translation_error
+    from usvc.evaluation.baseline_sift import sift_pnp_baseline
+
+    scene = read_scene_h5(small_mini)
+    truth = {f.name: f for f in scene.split("test")}
+    # the queries' poses are scrambled: a baseline that read them would be far off
+    rng = np.random.default_rng(0)
+    blind = replace(scene, frames=[f if f.split == "train" else replace(f, t=f.t + rng.normal(size=3))
+                                   for f in scene.frames])
+    results, timings = sift_pnp_baseline(blind, small_mini / IMAGE_DIR, tmp_path, OPTS, seeds=[0, 1])
+    assert set(results) == {0, 1} and timings["model_points"] > 500
+    for seed, poses in results.items():
+        assert set(poses) == set(truth)
+        for name, p in poses.items():
+            assert p.why == "" and p.inliers >= 20, (seed, name, p.why)
+            f = truth[name]
+            assert rotation_error_deg(p.R, f.R) < 0.5 and translation_error(p.R, p.t, f.R, f.t) < 0.01, name
+            assert p.seconds > 0

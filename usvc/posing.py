@@ -48,12 +48,15 @@ def _correspondences(db: pycolmap.Database, rec: pycolmap.Reconstruction, query_
     return np.array(p2, dtype=np.float64).reshape(-1, 2), np.array(p3, dtype=np.float64).reshape(-1, 3)
 
 
-def _register_query(db: pycolmap.Database, rec: pycolmap.Reconstruction, frame: Frame, query_id: int,
-                    mapped: dict[int, pycolmap.Image], camera: pycolmap.Camera, seed: int
-                    ) -> tuple[np.ndarray, np.ndarray, str]:
+def register_query(db: pycolmap.Database, rec: pycolmap.Reconstruction, query_id: int,
+                   mapped: dict[int, pycolmap.Image], camera: pycolmap.Camera, seed: int
+                   ) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """(R, t, inliers, why) of one query from its verified matches to the model's points; `why`
+    says why it was not posed (then R and t are empty)."""
     p2, p3 = _correspondences(db, rec, query_id, mapped)
     if len(p2) < MIN_QUERY_INLIERS:
-        return np.empty(0), np.empty(0), f"only {len(p2)} matches to reconstructed points (need {MIN_QUERY_INLIERS})"
+        return (np.empty(0), np.empty(0), 0,
+                f"only {len(p2)} matches to reconstructed points (need {MIN_QUERY_INLIERS})")
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = QUERY_MAX_ERROR_PX
     est.ransac.random_seed = seed
@@ -61,11 +64,11 @@ def _register_query(db: pycolmap.Database, rec: pycolmap.Reconstruction, frame: 
     ref.refine_focal_length = False
     ref.refine_extra_params = False
     res = pycolmap.estimate_and_refine_absolute_pose(p2, p3, camera, est, ref)
-    if res is None or res["num_inliers"] < MIN_QUERY_INLIERS:
-        n = 0 if res is None else res["num_inliers"]
-        return np.empty(0), np.empty(0), f"its pose explains only {n} of {len(p2)} matches (need {MIN_QUERY_INLIERS})"
+    n = 0 if res is None else int(res["num_inliers"])
+    if n < MIN_QUERY_INLIERS:
+        return np.empty(0), np.empty(0), n, f"its pose explains only {n} of {len(p2)} matches (need {MIN_QUERY_INLIERS})"
     pose = res["cam_from_world"]
-    return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), ""
+    return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), n, ""
 
 
 def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions) -> tuple[Scene, dict[str, str]]:
@@ -108,7 +111,7 @@ def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions) 
                     missing[f.name] = "its camera has no registered mapping photo"
                     continue
                 cam = rec.cameras[cam_id]
-                R, t, why = _register_query(db, rec, f, ids[f.name], mapped, cam, opts.seed)
+                R, t, _, why = register_query(db, rec, ids[f.name], mapped, cam, opts.seed)
                 if why:
                     missing[f.name] = why
                     continue

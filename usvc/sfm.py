@@ -159,7 +159,8 @@ def _pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
 
 
 def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
-    """An empty model whose image ids are the database's and whose poses are the given ones."""
+    """An empty model whose image ids are the database's and whose poses are the given ones
+    (only the database images among ``frames`` enter it)."""
     by_name = {f.name: f for f in frames}
     db = pycolmap.Database.open(db_path)
     try:
@@ -167,6 +168,8 @@ def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Recons
         for cam in db.read_all_cameras():
             rec.add_camera_with_trivial_rig(cam)
         for im in db.read_all_images():
+            if im.name not in by_name:  # e.g. queries whose features share the database
+                continue
             f = by_name[im.name]
             pose = pycolmap.Rigid3d(pycolmap.Rotation3d(f.R), f.t)
             rec.add_image_with_trivial_frame(

@@ -1,0 +1,88 @@
+"""SIFT + PnP against an SfM model: the classical baseline, on the same split as the pipeline.
+
+Needs the scene's prepare and sfm stages (it reads the prepared pinhole images, the split and the
+median scene depth from them, and uses the same `sfm` options), then localizes every query once per
+RANSAC seed (`usvc/evaluation/baseline_sift.py` says how) and scores the poses exactly as the
+metrics stage does. Writes results/<scene>/baseline.json: per-seed summaries, their mean and
+standard deviation, timings, and the queries it could not localize with the reason.
+
+Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [override ...]
+(overrides are Hydra's, e.g. scene.name=office_opencv scene.path=data/raw/office_opencv)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from hydra import compose, initialize_config_dir
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from usvc.config import register_configs  # noqa: E402
+from usvc.evaluation.baseline_sift import sift_pnp_baseline  # noqa: E402
+from usvc.evaluation.evaluate import QueryStats, evaluate_poses  # noqa: E402
+from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.logs import quiet_third_party  # noqa: E402
+from usvc.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
+from usvc.sfm import SfmOptions  # noqa: E402
+from usvc.stage import scene_paths  # noqa: E402
+from usvc.tracks import read_tracks  # noqa: E402
+
+
+def mean_std(summaries: list[dict]) -> tuple[dict, dict]:
+    """Mean and population std of every numeric figure that all seeds report."""
+    keys = [k for k, v in summaries[0].items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and all(s.get(k) is not None for s in summaries)]
+    mean = {k: float(np.mean([s[k] for s in summaries])) for k in keys}
+    std = {k: float(np.std([s[k] for s in summaries])) for k in keys}
+    return mean, std
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", required=True, help="scene config name (conf/scene/<name>.yaml)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="RANSAC seeds")
+    parser.add_argument("--out", type=Path, help="default: results/<scene name>/baseline.json")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. scene.name=... data_dir=...")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    quiet_third_party()
+    register_configs()
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        cfg = compose(config_name="config", overrides=[f"scene={args.scene}", *args.overrides])
+    paths = scene_paths(cfg)
+    scene = read_scene_h5(paths.prepared)
+    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    opts = SfmOptions(**cfg.sfm)
+    with tempfile.TemporaryDirectory(prefix="usvc-baseline-") as work:
+        results, timings = sift_pnp_baseline(scene, paths.prepared / IMAGE_DIR, Path(work), opts, args.seeds)
+    per_seed, failures = {}, {}
+    for seed, poses in results.items():
+        estimates = {n: (p.R, p.t) for n, p in poses.items() if p.R is not None}
+        stats = {n: QueryStats(p.inliers, p.seconds, p.R is not None) for n, p in poses.items()}
+        summary, _ = evaluate_poses(scene, estimates, stats, median_depth)
+        per_seed[str(seed)] = summary
+        failures[str(seed)] = {n: p.why for n, p in poses.items() if p.why}
+    mean, std = mean_std(list(per_seed.values()))
+    report = {"method": "sift_pnp", "scene": scene.name, "seeds": args.seeds,
+              "sift_max_features": opts.max_num_features, "mean": mean, "std": std, "per_seed": per_seed,
+              "not_localized": failures, "timings": timings}
+    out = args.out or Path(cfg.results_dir) / scene.name / "baseline.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    keys = [k for k in ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
+                        "acc_rel_1cm_1deg", "median_rot_deg", "median_trans_rel_cm", "ms_per_query") if k in mean]
+    print(f"{scene.name}: SIFT + PnP over seeds {args.seeds} ({mean['n_queries']:.0f} queries) -> {out}")
+    for k in keys:
+        print(f"  {k:22s} {mean[k]:.4g} ± {std[k]:.2g}")
+
+
+if __name__ == "__main__":
+    main()
