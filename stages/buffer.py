@@ -11,7 +11,7 @@ from usvc.config import register_configs
 from usvc.scene_io import read_depth, read_scene_h5
 from usvc.splat.render_io import read_rendered_views
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.training.buffer import BufferOptions, fill_buffer, write_buffer
+from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, write_buffer
 from usvc.training.keypoint_obs import read_scene_keypoints
 from usvc.weights import load_configured_encoder
 
@@ -25,7 +25,7 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     paths = scene_paths(cfg)
     scene = read_scene_h5(paths.prepared)
-    frames = scene.split("train")
+    frames, holdout = holdout_split(scene.split("train"), cfg.buffer.holdout_every)
     index = {f.name: i for i, f in enumerate(scene.frames)}
     depths = [read_depth(paths.prepared, index[f.name]) for f in frames]
     keypoints = read_scene_keypoints(paths.keypoints / "keypoints.h5")
@@ -50,6 +50,7 @@ def main(cfg: DictConfig) -> None:
         megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
     stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames) - n_rendered,
              "rendered_images": n_rendered,
+             "holdout_images": len(holdout),
              "rendered_buffer_views": int((buf.view_image >= len(frames) - n_rendered).sum()),
              "short_side": short_side, "feature_dim": int(buf.features.shape[1]), "megabytes": megabytes,
              "encoder": weights.name, "keypoint_observations": len(buf.kp_id),

@@ -16,7 +16,7 @@ from usvc.scene_io import read_scene_h5
 from usvc.synth.params import RoomParams
 from usvc.synth.writer import generate_scene
 from usvc.training.augment import warp_view
-from usvc.training.buffer import BufferOptions, fill_buffer, read_buffer, write_buffer
+from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, read_buffer, write_buffer
 
 
 @pytest.fixture(scope="module")
@@ -162,3 +162,15 @@ def test_keypoint_feature_is_the_cell_feature_at_a_cell_centre():
     torch.testing.assert_close(out[1], fmap[:, 0, 0])
     mid = sample_features(fmap, np.array([[8.5, 4.5]], dtype=np.float32))[0]  # halfway between (0,0) and (0,1)
     torch.testing.assert_close(mid, (fmap[:, 0, 0] + fmap[:, 0, 1]) / 2)
+
+
+def test_holdout_split_withholds_every_kth_mapping_image():
+    frames = [Frame(name=f"{i:02d}.png", image_path=None, camera=Camera("PINHOLE", 8, 8, (8.0, 8.0, 4.0, 4.0)),
+                    split="train", R=np.eye(3), t=np.zeros(3)) for i in range(10)]
+    train, held = holdout_split(frames, 4)
+    assert [f.name for f in held] == ["02.png", "06.png"]
+    assert len(train) == 8 and not {f.name for f in train} & {f.name for f in held}
+    assert holdout_split(frames, 0) == (frames, [])
+    for bad in (1, -2):
+        with pytest.raises(UsvcError, match="buffer.holdout_every"):
+            holdout_split(frames, bad)

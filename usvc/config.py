@@ -79,6 +79,7 @@ class BufferConfig:
     keypoint_obs_per_view: int = 1024  # cap on keypoint tuples stored per augmented view (0 = all)
     depth_visibility_tol: float = 0.05  # a non-track keypoint is visible where |depth - z| < tol * z
     rendered_views: bool = False  # add the render stage's Gaussian-splatting views (method=multiview_gs)
+    holdout_every: int = 0  # withhold every k-th mapping image from training (a validation split); 0 = none
 
 
 @dataclass

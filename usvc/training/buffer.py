@@ -92,6 +92,20 @@ def _valid_cells(mask: np.ndarray, h_cells: int, w_cells: int) -> np.ndarray:
 
 
 @torch.inference_mode()
+def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[Frame]]:
+    """(training, held out): every ``every``-th mapping image (from the ``every // 2``-th on, so the split
+    does not line up with an every-n-th query split) is withheld; ``every`` 0 withholds none."""
+    if every < 0 or every == 1:
+        raise UsvcError(f"buffer.holdout_every must be 0 (none) or >= 2, got {every}")
+    if every == 0:
+        return list(mapping), []
+    held = [i % every == every // 2 for i in range(len(mapping))]
+    train = [f for f, h in zip(mapping, held) if not h]
+    if not train:
+        raise UsvcError(f"buffer.holdout_every={every} leaves no mapping image to train on")
+    return train, [f for f, h in zip(mapping, held) if h]
+
+
 def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu",
                 keypoints: SceneKeypoints | None = None,
                 depths: list[np.ndarray | None] | None = None) -> TrainingBuffer:

@@ -1,0 +1,122 @@
+"""Diagnose a scene's map: fit on training views, generalisation to held-out mapping views and queries,
+keypoint 3D error, the encoders' track-retrieval probe, and the accuracy the pipeline measured.
+
+Held-out mapping views exist when the buffer was built with `buffer.holdout_every=k` (every k-th
+mapping image withheld from training); the queries are scored too but only as a read-out, never
+for choosing settings. The metrics come from the scene's `metrics.json` and `train.json` (and
+`baseline.json` when benchmarks/baseline_sift.py has run). Method notes: usvc/evaluation/diagnosis.py.
+
+Run: python benchmarks/diagnose_map.py --scene bird [--views 16] [override ...]
+Writes results/<scene name>/diagnosis.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from usvc.config import register_configs  # noqa: E402
+from usvc.evaluation.diagnosis import observations_of, track_retrieval, view_fit  # noqa: E402
+from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.exif import read_image_bgr  # noqa: E402
+from usvc.logs import quiet_third_party  # noqa: E402
+from usvc.model.preprocess import luma01  # noqa: E402
+from usvc.relocalizer import Relocalizer  # noqa: E402
+from usvc.scene_io import read_scene_h5  # noqa: E402
+from usvc.stage import scene_paths  # noqa: E402
+from usvc.tracks import read_tracks  # noqa: E402
+from usvc.training.buffer import read_buffer_attrs  # noqa: E402
+from usvc.weights import load_configured_encoder  # noqa: E402
+
+import h5py  # noqa: E402
+
+
+def _gray(path: Path) -> np.ndarray:
+    return luma01(read_image_bgr(path), rgb=False)
+
+
+def _spread(frames: list, n: int) -> list:
+    if len(frames) <= n:
+        return frames
+    return [frames[i] for i in np.linspace(0, len(frames) - 1, n).round().astype(int)]
+
+
+def _group(reloc: Relocalizer, frames: list, tracks, median_depth: float) -> dict:
+    fits = []
+    for f in frames:
+        gray = _gray(f.image_path)
+        coords = reloc.scene_coordinates(gray)
+        uv, xyz = observations_of(tracks, f.name)
+        fits.append(view_fit(coords, f.R, f.t, f.camera.K, uv, xyz, median_depth))
+    if not fits:
+        return {"views": 0}
+    kp = [v.keypoint_err_rel for v in fits if np.isfinite(v.keypoint_err_rel)]
+    return {"views": len(fits),
+            "median_reprojection_px": float(np.median([v.median_px for v in fits])),
+            "cells_within_10px": float(np.mean([v.inlier_10px for v in fits])),
+            "median_keypoint_err_pct_depth": float(100 * np.median(kp)) if kp else None,
+            "keypoint_observations": int(sum(v.keypoints for v in fits))}
+
+
+def _buffer_images(path: Path) -> list[str]:
+    with h5py.File(path, "r") as h5:
+        names = h5["image_names"][()]
+    return [n.decode() if isinstance(n, bytes) else str(n) for n in names]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", required=True)
+    parser.add_argument("--views", type=int, default=16, help="views per group (spread over the split)")
+    parser.add_argument("--probe-encoders", nargs="*", type=float, default=[0.5, 1.0],
+                        help="shipped encoder widths to probe (0.5 small, 1.0 default)")
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    quiet_third_party()
+    register_configs()
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        cfg = compose(config_name="config", overrides=[f"scene={args.scene}", *args.overrides])
+    torch.manual_seed(0)
+    paths = scene_paths(cfg)
+    scene = read_scene_h5(paths.prepared)
+    tracks = read_tracks(paths.sfm / "tracks.h5")
+    median_depth = median_scene_depth(tracks)
+    trained = set(_buffer_images(paths.buffer / "buffer.h5"))
+    mapping = scene.split("train")
+    reloc = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights)
+    groups = {"training_views": _spread([f for f in mapping if f.name in trained], args.views),
+              "heldout_mapping_views": _spread([f for f in mapping if f.name not in trained], args.views),
+              "queries": scene.split("test")}
+    report: dict = {"scene": scene.name, "median_depth": median_depth,
+                    "buffer": read_buffer_attrs(paths.buffer / "buffer.h5"),
+                    "fit": {k: _group(reloc, v, tracks, median_depth) for k, v in groups.items()}}
+    images = {f.name: _gray(f.image_path) for f in _spread(mapping, 48)}
+    report["track_retrieval"] = {}
+    for width in args.probe_encoders:
+        encoder, weights = load_configured_encoder(width, None)
+        report["track_retrieval"][weights.name] = track_retrieval(encoder, images, tracks)
+    for name in ("train", "metrics", "baseline"):
+        p = Path(cfg.results_dir) / scene.name / f"{name}.json"
+        if p.is_file():
+            data = json.loads(p.read_text())
+            report[name] = {k: v for k, v in (data.get("mean", data)).items()
+                            if isinstance(v, (int, float)) and not k.endswith("_curve")}
+    out = args.out or Path(cfg.results_dir) / scene.name / "diagnosis.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(json.dumps({k: report[k] for k in ("fit", "track_retrieval")}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
