@@ -34,7 +34,8 @@ def main(cfg: DictConfig) -> None:
         rendered, observations = read_rendered_views(paths.render)
         frames, depths, n_rendered = frames + rendered, depths + [None] * len(rendered), len(rendered)
         keypoints.by_image.update(observations)
-    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
+    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights,
+                                               cfg.model.encoder)
     b = cfg.buffer
     short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
     opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,

@@ -31,7 +31,8 @@ def main(cfg: DictConfig) -> None:
     opts = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
                         seed=cfg.seed)
     head, summary = train_head(buf, median_depth, opts)
-    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights)
+    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights,
+                                               cfg.model.encoder)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,

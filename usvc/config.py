@@ -58,7 +58,8 @@ class KeypointsConfig:
 @dataclass
 class ModelConfig:
     name: str = "default"
-    encoder_width: float = 1.0  # channel multiplier; 0.5 is model=small
+    encoder: str = "ace"  # ace: the ACE-layout encoder (shipped or encoder_weights) | xfeat: XFeat's backbone
+    encoder_width: float = 1.0  # channel multiplier of the ace encoder; 0.5 is model=small
     encoder_weights: Optional[str] = None  # null = the encoder shipped for this width (usvc/weights)
     head_width: int = 512
     head_blocks: int = 1
@@ -193,6 +194,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "relocalize.backend": ("opencv", "pycolmap"),
     "method": ("single", "multiview", "multiview_gs"),
     "train.bundle_loss": ("tanh", "squared"),
+    "model.encoder": ("ace", "xfeat"),
 }
 _POSITIVE: tuple[str, ...] = (
     "scene.split_n", "sfm.max_num_features", "sfm.exhaustive_max_images", "sfm.sequential_overlap",

@@ -21,14 +21,14 @@ from usvc.errors import UsvcError
 from usvc.exif import read_image_bgr
 from usvc.evaluation.pnp import BACKENDS, estimate_focal, solve_pnp
 from usvc.geometry import camera_centers, matrix_to_quat_wxyz
-from usvc.model.encoder import Encoder, cell_centers, load_encoder_weights
+from usvc.model.encoder import cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 from usvc.refinement import RefineOptions, refine_pose
 from usvc.scene import Camera
 from usvc.undistort import undistort
-from usvc.weights import encoder_weights_path
+from usvc.weights import load_configured_encoder
 
 log = logging.getLogger(__name__)
 
@@ -166,8 +166,8 @@ class Relocalizer:
             raise UsvcError(f"unknown PnP backend {self.options.backend!r}; known: {list(BACKENDS)}")
         header = read_map_header(map_path)
         width = float(header["encoder"].get("width", 1.0))
-        weights = encoder_weights_path(width, encoder_weights)
-        encoder: Encoder = load_encoder_weights(weights, width=width)
+        kind = str(header["encoder"].get("kind", "ace"))
+        encoder, _ = load_configured_encoder(width, encoder_weights, kind)
         self.regressor: Regressor
         self.regressor, self.metadata = load_map(map_path, encoder)
         self.regressor.to(device).eval()

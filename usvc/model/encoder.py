@@ -194,8 +194,8 @@ def check_state_dict(path: Path, state: object, model: nn.Module, what: str) -> 
                 f"{path}: {what} entry {key} has shape {list(value.shape)}, "
                 f"expected {list(ref.shape)}"
             )
-        if not value.is_floating_point():
-            raise ModelError(f"{path}: {what} entry {key} has dtype {value.dtype}, not floating")
+        if value.is_floating_point() != ref.is_floating_point():  # e.g. BatchNorm's integer counter
+            raise ModelError(f"{path}: {what} entry {key} has dtype {value.dtype}, expected {ref.dtype}")
 
 
 def load_encoder_weights(path: str | Path, width: float = 1.0) -> Encoder:

@@ -215,6 +215,7 @@ def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]
         "encoder": {
             "fingerprint": encoder_fingerprint(regressor.encoder),
             "width": regressor.encoder.width,
+            "kind": getattr(regressor.encoder, "kind", "ace"),
             "out_channels": regressor.encoder.out_channels,
         },
         "metadata": metadata,

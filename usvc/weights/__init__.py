@@ -30,9 +30,17 @@ def encoder_weights_path(width: float, weights: str | Path | None) -> Path:
     return Path(weights) if weights else shipped_encoder_path(width)
 
 
-def load_configured_encoder(width: float, weights: str | Path | None):
-    """(frozen Encoder, its weights path) for a `model` config: the one place stages resolve it."""
+def load_configured_encoder(width: float, weights: str | Path | None, kind: str = "ace"):
+    """(frozen encoder, its weights path) for a `model` config: the one place stages and the
+    relocalizer resolve it. `kind` is `model.encoder`: ace (ACE layout, at `width`) or xfeat."""
     from usvc.model.encoder import load_encoder_weights
 
+    if kind == "xfeat":
+        from usvc.model.xfeat_encoder import load_xfeat_encoder, shipped_xfeat_weights
+
+        path = Path(weights) if weights else shipped_xfeat_weights()
+        return load_xfeat_encoder(path), path
+    if kind != "ace":
+        raise UsvcError(f"unknown encoder kind {kind!r} (known: ace, xfeat)")
     path = encoder_weights_path(width, weights)
     return load_encoder_weights(path, width=width), path
