@@ -41,6 +41,9 @@ from usvc.weights import load_configured_encoder  # noqa: E402
 import h5py  # noqa: E402
 
 
+PROBES = {"small": (0.5, None, "ace"), "default": (1.0, None, "ace"), "xfeat": (1.0, None, "xfeat")}
+
+
 def _gray(path: Path) -> np.ndarray:
     return luma01(read_image_bgr(path), rgb=False)
 
@@ -78,8 +81,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", required=True)
     parser.add_argument("--views", type=int, default=16, help="views per group (spread over the split)")
-    parser.add_argument("--probe-encoders", nargs="*", type=float, default=[0.5, 1.0],
-                        help="shipped encoder widths to probe (0.5 small, 1.0 default)")
+    parser.add_argument("--probe-encoders", nargs="*", choices=sorted(PROBES), default=sorted(PROBES),
+                        help="encoders whose track-retrieval probe to run")
     parser.add_argument("--out", type=Path)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
@@ -104,9 +107,9 @@ def main() -> None:
                     "fit": {k: _group(reloc, v, tracks, median_depth) for k, v in groups.items()}}
     images = {f.name: _gray(f.image_path) for f in _spread(mapping, 48)}
     report["track_retrieval"] = {}
-    for width in args.probe_encoders:
-        encoder, weights = load_configured_encoder(width, None)
-        report["track_retrieval"][weights.name] = track_retrieval(encoder, images, tracks)
+    for name in args.probe_encoders:
+        encoder, _ = load_configured_encoder(*PROBES[name])
+        report["track_retrieval"][name] = track_retrieval(encoder, images, tracks)
     for name in ("train", "metrics", "baseline"):
         p = Path(cfg.results_dir) / scene.name / f"{name}.json"
         if p.is_file():
