@@ -91,7 +91,6 @@ def _valid_cells(mask: np.ndarray, h_cells: int, w_cells: int) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
-@torch.inference_mode()
 def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[Frame]]:
     """(training, held out): every ``every``-th mapping image (from the ``every // 2``-th on, so the split
     does not line up with an every-n-th query split) is withheld; ``every`` 0 withholds none."""
@@ -106,6 +105,7 @@ def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[F
     return train, [f for f, h in zip(mapping, held) if h]
 
 
+@torch.inference_mode()
 def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu",
                 keypoints: SceneKeypoints | None = None,
                 depths: list[np.ndarray | None] | None = None) -> TrainingBuffer:
