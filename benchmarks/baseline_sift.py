@@ -14,22 +14,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
-from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from usvc.config import register_configs  # noqa: E402
+from usvc.config import compose_for_script  # noqa: E402
 from usvc.evaluation.baseline_sift import sift_pnp_baseline  # noqa: E402
 from usvc.evaluation.evaluate import QueryStats, evaluate_poses  # noqa: E402
 from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.logs import quiet_third_party  # noqa: E402
+from usvc.logs import script_logging  # noqa: E402
 from usvc.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
 from usvc.sfm import SfmOptions  # noqa: E402
 from usvc.stage import scene_paths  # noqa: E402
@@ -52,11 +50,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="default: results/<scene name>/baseline.json")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. scene.name=... data_dir=...")
     args = parser.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    quiet_third_party()
-    register_configs()
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
-        cfg = compose(config_name="config", overrides=[f"scene={args.scene}", *args.overrides])
+    script_logging()
+    cfg = compose_for_script(args.scene, args.overrides)
     paths = scene_paths(cfg)
     scene = read_scene_h5(paths.prepared)
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))

@@ -14,22 +14,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from usvc.config import register_configs  # noqa: E402
+from usvc.config import compose_for_script  # noqa: E402
 from usvc.evaluation.diagnosis import observations_of, track_retrieval, view_fit  # noqa: E402
 from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
 from usvc.exif import read_image_bgr  # noqa: E402
-from usvc.logs import quiet_third_party  # noqa: E402
+from usvc.logs import script_logging  # noqa: E402
 from usvc.model.preprocess import luma01  # noqa: E402
 from usvc.relocalizer import Relocalizer  # noqa: E402
 from usvc.scene_io import read_scene_h5  # noqa: E402
@@ -86,11 +84,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    quiet_third_party()
-    register_configs()
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
-        cfg = compose(config_name="config", overrides=[f"scene={args.scene}", *args.overrides])
+    script_logging()
+    cfg = compose_for_script(args.scene, args.overrides)
     torch.manual_seed(0)
     paths = scene_paths(cfg)
     scene = read_scene_h5(paths.prepared)

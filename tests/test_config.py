@@ -81,3 +81,12 @@ def test_relocalizer_defaults_are_the_configured_ones():
 def test_relocalize_thresholds_are_checked(override, message):
     with pytest.raises(ConfigError, match=message):
         validate(_compose([override]))
+
+
+def test_scripts_compose_the_stage_config_with_its_validation():
+    from usvc.config import compose_for_script
+
+    cfg = compose_for_script("office", ["buffer.holdout_every=8", "model=xfeat"])
+    assert (cfg.scene.name, cfg.buffer.holdout_every, cfg.model.encoder) == ("office", 8, "xfeat")
+    with pytest.raises(ConfigError, match="model.encoder='foo'"):
+        compose_for_script("office", ["model.encoder=foo"])

@@ -293,3 +293,18 @@ GROUP_SCHEMAS: dict[str, type] = {
 
 def schema_fields(schema: type) -> list[str]:
     return [f.name for f in fields(schema)]
+
+
+def compose_for_script(scene: str, overrides: list[str]) -> Any:
+    """The config a stage would see for ``scene=<scene> <overrides>``, for scripts outside Hydra's
+    entry points (benchmarks): the same schema and the same validation."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    register_configs()
+    conf_dir = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf_dir), version_base=None):
+        cfg = compose(config_name="config", overrides=[f"scene={scene}", *overrides])
+    validate(cfg)
+    return cfg
