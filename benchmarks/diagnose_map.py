@@ -33,10 +33,9 @@ from usvc.relocalizer import Relocalizer  # noqa: E402
 from usvc.scene_io import read_scene_h5  # noqa: E402
 from usvc.stage import scene_paths  # noqa: E402
 from usvc.tracks import read_tracks  # noqa: E402
-from usvc.training.buffer import read_buffer_attrs  # noqa: E402
+from usvc.training.buffer import read_buffer_attrs, read_buffer_image_names  # noqa: E402
 from usvc.weights import load_configured_encoder  # noqa: E402
 
-import h5py  # noqa: E402
 
 
 PROBES = {"small": (0.5, None, "ace"), "default": (1.0, None, "ace"), "xfeat": (1.0, None, "xfeat")}
@@ -69,12 +68,6 @@ def _group(reloc: Relocalizer, frames: list, tracks, median_depth: float) -> dic
             "keypoint_observations": int(sum(v.keypoints for v in fits))}
 
 
-def _buffer_images(path: Path) -> list[str]:
-    with h5py.File(path, "r") as h5:
-        names = h5["image_names"][()]
-    return [n.decode() if isinstance(n, bytes) else str(n) for n in names]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", required=True)
@@ -91,7 +84,7 @@ def main() -> None:
     scene = read_scene_h5(paths.prepared)
     tracks = read_tracks(paths.sfm / "tracks.h5")
     median_depth = median_scene_depth(tracks)
-    trained = set(_buffer_images(paths.buffer / "buffer.h5"))
+    trained = set(read_buffer_image_names(paths.buffer / "buffer.h5"))
     mapping = scene.split("train")
     reloc = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights)
     groups = {"training_views": _spread([f for f in mapping if f.name in trained], args.views),

@@ -16,7 +16,8 @@ from usvc.scene_io import read_scene_h5
 from usvc.synth.params import RoomParams
 from usvc.synth.writer import generate_scene
 from usvc.training.augment import warp_view
-from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, read_buffer, write_buffer
+from usvc.training.buffer import (BufferOptions, fill_buffer, holdout_split, read_buffer, read_buffer_image_names,
+                                  write_buffer)
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +49,7 @@ def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
     write_buffer(tmp_path / "b.h5", a)
     b = read_buffer(tmp_path / "b.h5")
     np.testing.assert_array_equal(a.features, b.features)
+    assert read_buffer_image_names(tmp_path / "b.h5") == a.image_names == [f.name for f in frames]
     c = fill_buffer(frames, encoder, OPTS)
     np.testing.assert_array_equal(a.features, c.features)
     np.testing.assert_array_equal(a.view_R, c.view_R)

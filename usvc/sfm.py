@@ -114,6 +114,16 @@ def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
     return sorted(pairs)
 
 
+def matching_kwargs(opts: SfmOptions) -> dict:
+    """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU)."""
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = opts.num_threads
+    mo.use_gpu = False
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run
+    return dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+
+
 def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool) -> str:
     """Match with the configured strategy; `auto` is exhaustive for small scenes."""
     mode = opts.matching
@@ -124,12 +134,7 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
             mode = "poses" if has_poses else "sequential"
     if mode == "poses" and not has_poses:
         raise SfmError("sfm.matching=poses needs a scene with poses")
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads
-    mo.use_gpu = False
-    vo = pycolmap.TwoViewGeometryOptions()
-    vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run
-    common = dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    common = matching_kwargs(opts)
     if mode == "exhaustive":
         pycolmap.match_exhaustive(db_path, **common)
     elif mode == "sequential":

@@ -24,7 +24,7 @@ import pycolmap
 from usvc.errors import SfmError
 from usvc.posing import register_query
 from usvc.scene import Frame, Scene
-from usvc.sfm import SfmOptions, _pipeline_options, _posed_reconstruction, extract, pose_pairs
+from usvc.sfm import SfmOptions, _pipeline_options, _posed_reconstruction, extract, matching_kwargs, pose_pairs
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +46,9 @@ def _pairs_file(path: Path, pairs: list[tuple[str, str]]) -> Path:
 
 
 def _match_pairs(db_path: Path, pairs_file: Path, opts: SfmOptions) -> None:
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads
-    mo.use_gpu = False
-    vo = pycolmap.TwoViewGeometryOptions()
-    vo.ransac.random_seed = opts.seed
     po = pycolmap.ImportedPairingOptions()
     po.match_list_path = pairs_file
-    pycolmap.match_image_pairs(db_path, pairing_options=po, matching_options=mo, verification_options=vo,
-                               device=pycolmap.Device.cpu)
+    pycolmap.match_image_pairs(db_path, pairing_options=po, **matching_kwargs(opts))
 
 
 def _mapping_pairs(mapping: list[Frame], opts: SfmOptions) -> list[tuple[str, str]]:

@@ -214,6 +214,12 @@ def read_buffer_attrs(path: Path) -> dict:
         return {k: (v.item() if hasattr(v, "item") else v) for k, v in h5.attrs.items()}
 
 
+def read_buffer_image_names(path: Path) -> list[str]:
+    """The names of the images a buffer was built from (without loading its features)."""
+    with h5py.File(path, "r") as h5:
+        return [n.decode() if isinstance(n, bytes) else str(n) for n in h5["image_names"][()]]
+
+
 def read_buffer(path: Path) -> TrainingBuffer:
     path = Path(path)
     if not path.is_file():
