@@ -169,9 +169,7 @@ def test_folder_batch_with_all_exports(files: dict[str, Path], batch: dict[str, 
 def test_intrinsics_from_exif_else_estimated(files: dict[str, Path], batch: dict[str, Path]) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], batch["exif"],
                 files["photo"])
-    if proc.returncode != 0:  # focal estimation not available: one clean error line
-        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr, proc.stderr
-        pytest.skip(f"no focal estimation yet: {proc.stderr.strip()}")
+    assert proc.returncode == 0, proc.stderr  # focal estimation exists: a photo without EXIF is localized
     exif_record, plain_record = (json.loads(line) for line in proc.stdout.splitlines())
     assert exif_record["intrinsics_source"] == "exif" and plain_record["intrinsics_source"] == "estimated"
     if "camera" in exif_record:
