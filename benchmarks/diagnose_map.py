@@ -72,8 +72,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", required=True)
     parser.add_argument("--views", type=int, default=16, help="views per group (spread over the split)")
-    parser.add_argument("--probe-encoders", nargs="*", choices=sorted(PROBES), default=sorted(PROBES),
-                        help="encoders whose track-retrieval probe to run")
+    parser.add_argument("--probe-encoders", nargs="*", choices=sorted([*PROBES, "map"]), default=sorted(PROBES),
+                        help="encoders whose track-retrieval probe to run (map: the configured model's)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
@@ -94,10 +94,14 @@ def main() -> None:
                     "buffer": read_buffer_attrs(paths.buffer / "buffer.h5"),
                     "fit": {k: _group(reloc, v, tracks, median_depth) for k, v in groups.items()}}
     images = {f.name: _gray(f.image_path) for f in _spread(mapping, 48)}
-    report["track_retrieval"] = {}
+    heldout = {f.name: _gray(f.image_path) for f in groups["heldout_mapping_views"]}
+    probes = dict(PROBES, map=(cfg.model.encoder_width, cfg.model.encoder_weights, cfg.model.encoder))
+    report["track_retrieval"], report["track_retrieval_heldout"] = {}, {}
     for name in args.probe_encoders:
-        encoder, _ = load_configured_encoder(*PROBES[name])
+        encoder, _ = load_configured_encoder(*probes[name])
         report["track_retrieval"][name] = track_retrieval(encoder, images, tracks)
+        if len(heldout) >= 2:  # views no encoder fine-tuned on the scene's mapping images has seen
+            report["track_retrieval_heldout"][name] = track_retrieval(encoder, heldout, tracks)
     for name in ("train", "metrics", "baseline"):
         p = Path(cfg.results_dir) / scene.name / f"{name}.json"
         if p.is_file():
@@ -106,7 +110,7 @@ def main() -> None:
                             if isinstance(v, (int, float)) and not k.endswith("_curve")}
     out = args.out or Path(cfg.results_dir) / scene.name / "diagnosis.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
-    print(json.dumps({k: report[k] for k in ("fit", "track_retrieval")}, indent=1))
+    print(json.dumps({k: report[k] for k in ("fit", "track_retrieval", "track_retrieval_heldout")}, indent=1))
 
 
 if __name__ == "__main__":

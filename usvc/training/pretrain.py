@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -20,10 +21,11 @@ import torch
 from tqdm import tqdm
 
 from usvc.errors import UsvcError
-from usvc.model.encoder import OUTPUT_STRIDE, Encoder
+from usvc.model.encoder import OUTPUT_STRIDE, Encoder, load_encoder_weights
 from usvc.model.head import Head
 from usvc.model.preprocess import INPUT_MEAN, INPUT_STD
 from usvc.training.pretrain_data import CorpusScene, build_corpus
+from usvc.training.real_corpus import real_corpus_scene
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +53,9 @@ class PretrainOptions:
     positive_radius: float = 0.05  # contrastive: cells whose surface points are this close match (m)
     negative_radius: float = 0.3  # contrastive: cells nearer than this (but not the match) are ignored
     temperature: float = 0.07
+    init_weights: str = ""  # start from this encoder file (e.g. a shipped encoder) instead of random weights
+    real_scenes: str = ""  # comma-separated scene folders (data/<scene>): their mapping images and SfM tracks join the corpus
+    real_holdout_every: int = 0  # withhold the mapping images the buffer withholds with buffer.holdout_every
 
 
 def crop_view(scene: CorpusScene, frame: int, opts: PretrainOptions, rng: np.random.Generator
@@ -110,7 +115,11 @@ def contrastive_loss(fa: torch.Tensor, fb: torch.Tensor, xa: torch.Tensor, xb: t
 
 
 def pair_frames(scene: CorpusScene, opts: PretrainOptions, rng: np.random.Generator) -> tuple[int, int]:
-    """Two nearby frames of one mapping sequence (the corpus has two sequences of equal length)."""
+    """Two nearby frames: of one mapping sequence (synthetic rooms have two of equal length), or a
+    frame and one of the frames sharing most tracks with it (real captures)."""
+    if scene.partners is not None:
+        a = int(rng.choice([i for i, p in enumerate(scene.partners) if len(p)]))
+        return a, int(rng.choice(scene.partners[a]))
     seq_len = max(1, len(scene.gray) // 2)
     a = int(rng.integers(len(scene.gray)))
     lo, hi = (a // seq_len) * seq_len, min(len(scene.gray), (a // seq_len + 1) * seq_len)
@@ -168,10 +177,19 @@ def pretrain_encoder(opts: PretrainOptions, device: str = "cpu") -> tuple[Encode
     torch.manual_seed(opts.seed)
     rng = np.random.default_rng(opts.seed)
     t0 = time.perf_counter()
-    corpus = build_corpus(opts.n_scenes, opts.first_seed, opts.frames_per_scene)
+    corpus = build_corpus(opts.n_scenes, opts.first_seed, opts.frames_per_scene) if opts.n_scenes > 0 else []
+    real = [real_corpus_scene(Path(d), opts.real_holdout_every) for d in opts.real_scenes.split(",") if d]
+    if real and opts.objective != "contrastive":
+        raise UsvcError("real_scenes need objective=contrastive (a real capture has no dense coordinates)")
+    corpus = corpus + real
+    if not corpus:
+        raise UsvcError("pretrain corpus is empty: set n_scenes > 0 or real_scenes")
     corpus_seconds = time.perf_counter() - t0
 
-    encoder = Encoder(opts.encoder_width).to(device).train()
+    if opts.init_weights:
+        encoder = load_encoder_weights(opts.init_weights, opts.encoder_width).to(device).train().requires_grad_(True)
+    else:
+        encoder = Encoder(opts.encoder_width).to(device).train()
     heads = torch.nn.ModuleList()
     for scene in (corpus if opts.objective == "regression" else []):
         head = Head(in_channels=encoder.out_channels, width=opts.head_width, num_blocks=1)

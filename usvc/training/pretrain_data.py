@@ -32,6 +32,7 @@ class CorpusScene:
     gray: np.ndarray  # (F, H, W) float32
     xyz: np.ndarray  # (F, H, W, 3) float16 world coordinates of the pixel centres
     center: np.ndarray  # (3,) mean camera position, the head's scene centre
+    partners: list[np.ndarray] | None = None  # real captures: per frame, the frames sharing most tracks
 
 
 def corpus_params(seed: int, frames_per_scene: int, width: int = 320, height: int = 240) -> RoomParams:
