@@ -89,3 +89,21 @@ def test_the_same_track_in_two_images_is_a_positive_of_the_contrastive_loss(tmp_
 def test_a_scene_without_tracks_is_one_clear_error(tmp_path):
     with pytest.raises(UsvcError, match="no SfM tracks"):
         real_corpus_scene(tmp_path)
+
+
+def test_fine_tuning_on_a_real_capture_starts_from_the_given_weights_and_writes_an_encoder(tmp_path):
+    from usvc.model.encoder import encoder_fingerprint, load_encoder_weights
+    from usvc.training.pretrain import pretrain_encoder
+    from usvc.weights import encoder_weights_path
+
+    scene_dir, _ = _scene_dir(tmp_path)
+    shipped = encoder_weights_path(0.5, None)
+    opts = PretrainOptions(encoder_width=0.5, n_scenes=0, iterations=3, batch=2, crop_h=48, crop_w=64,
+                           init_weights=str(shipped), real_scenes=str(scene_dir))
+    encoder, provenance = pretrain_encoder(opts)
+    assert provenance["corpus"]["rooms"] == 1 and provenance["options"]["real_scenes"] == str(scene_dir)
+    assert encoder_fingerprint(encoder) != encoder_fingerprint(load_encoder_weights(shipped, 0.5))
+    with pytest.raises(UsvcError, match="objective=contrastive"):
+        pretrain_encoder(PretrainOptions(n_scenes=0, objective="regression", real_scenes=str(scene_dir)))
+    with pytest.raises(UsvcError, match="empty"):
+        pretrain_encoder(PretrainOptions(n_scenes=0))

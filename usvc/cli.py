@@ -230,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"usvc {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    pre = sub.add_parser("pretrain-encoder", help="pretrain an encoder on generated rooms (rebuilds weights/)")
+    pre = sub.add_parser("pretrain-encoder", help="pretrain an encoder on generated rooms (rebuilds weights/), or fine-tune one on real captures")
     pre.add_argument("--width", type=float, default=1.0, help="channel multiplier (0.5 = model=small)")
     pre.add_argument("--out", required=True, help="weight file to write (.pt); provenance goes to .json beside it")
     pre.add_argument("--device", default="cpu")
