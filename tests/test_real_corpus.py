@@ -107,3 +107,21 @@ def test_fine_tuning_on_a_real_capture_starts_from_the_given_weights_and_writes_
         pretrain_encoder(PretrainOptions(n_scenes=0, objective="regression", real_scenes=str(scene_dir)))
     with pytest.raises(UsvcError, match="empty"):
         pretrain_encoder(PretrainOptions(n_scenes=0))
+
+
+def test_model_small_real_loads_the_shipped_real_photo_encoder(tmp_path, monkeypatch):
+    import json
+
+    from usvc.config import compose_for_script
+    from usvc.model.encoder import encoder_fingerprint
+    from usvc.weights import WEIGHTS_DIR, encoder_weights_path, load_configured_encoder
+
+    monkeypatch.chdir(tmp_path)  # a bare name resolves to the shipped file from any working directory
+    cfg = compose_for_script("mini", ["model=small_real"])
+    encoder, path = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights, cfg.model.encoder)
+    assert path == WEIGHTS_DIR / "encoder_small_real.pt"
+    record = json.loads(path.with_suffix(".json").read_text())
+    assert encoder_fingerprint(encoder) == record["fingerprint"] and record["options"]["init_weights"]
+    # a file of that name in the working directory wins, as any explicit path does
+    (tmp_path / "encoder_small_real.pt").write_bytes(b"")
+    assert encoder_weights_path(0.5, "encoder_small_real.pt") == tmp_path.joinpath("encoder_small_real.pt").relative_to(tmp_path)

@@ -26,8 +26,16 @@ def shipped_encoder_path(width: float) -> Path:
 
 
 def encoder_weights_path(width: float, weights: str | Path | None) -> Path:
-    """The configured weights file, or the shipped one for `width` when none is configured."""
-    return Path(weights) if weights else shipped_encoder_path(width)
+    """The configured weights file, or the shipped one for `width` when none is configured.
+
+    A bare file name (no folder) that is not a file in the working directory names a file shipped
+    in this folder, e.g. `encoder_small_real.pt` (`model=small_real`)."""
+    if not weights:
+        return shipped_encoder_path(width)
+    path = Path(weights)
+    if path.parent == Path(".") and not path.exists() and (WEIGHTS_DIR / path.name).is_file():
+        return WEIGHTS_DIR / path.name
+    return path
 
 
 def load_configured_encoder(width: float, weights: str | Path | None, kind: str = "ace"):
