@@ -44,14 +44,15 @@ def real_corpus_scene(scene_dir: Path, holdout_every: int = 0) -> CorpusScene:
     scene = read_scene_h5(scene_dir / "prepared")
     tracks = read_tracks(tracks_path)
     mapping, _ = holdout_split(scene.split("train"), holdout_every)
-    frames = [f for f in mapping if f.name in set(tracks.image_names)]
+    index = {name: k for k, name in enumerate(tracks.image_names)}
+    frames = [f for f in mapping if f.name in index]
     if len(frames) < 2:
         raise UsvcError(f"{scene_dir}: fewer than two mapping images with SfM observations")
     scale = REFERENCE_DEPTH / median_scene_depth(tracks)
-    index = {name: k for k, name in enumerate(tracks.image_names)}
     point_of_obs = tracks.point_of_obs()
-    grays, labels, seen = [], [], []
-    for f in frames:
+    sees = np.zeros((len(frames), len(tracks.xyz)), dtype=np.float32)  # frame x point incidence
+    grays, labels = [], []
+    for k, f in enumerate(frames):
         gray = luma01(read_image_bgr(f.image_path), rgb=False)
         h, w = gray.shape
         xyz = np.full((h, w, 3), np.nan, dtype=np.float16)
@@ -64,12 +65,13 @@ def real_corpus_scene(scene_dir: Path, holdout_every: int = 0) -> CorpusScene:
             xyz[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = p
         grays.append(gray)
         labels.append(xyz)
-        seen.append(set(point_of_obs[rows].tolist()))
+        sees[k, point_of_obs[rows]] = 1.0
+    shared = sees @ sees.T  # tracks two frames have in common
+    np.fill_diagonal(shared, 0.0)
     partners = []
-    for a in range(len(frames)):
-        shared = np.array([len(seen[a] & seen[b]) if b != a else 0 for b in range(len(frames))])
-        best = np.argsort(-shared, kind="stable")[:PARTNERS]
-        partners.append(best[shared[best] > 0])  # never itself, never a photo sharing no track
+    for row in shared:
+        best = np.argsort(-row, kind="stable")[:PARTNERS]
+        partners.append(best[row[best] > 0])  # never itself, never a photo sharing no track
     if not any(len(p) for p in partners):
         raise UsvcError(f"{scene_dir}: no two mapping images share an SfM track")
     log.info("real corpus %s: %d mapping images, %d tracks, scale x%.4g", scene_dir, len(frames),
