@@ -52,17 +52,22 @@ def _spread(frames: list, n: int) -> list:
 
 
 def _group(reloc: Relocalizer, frames: list, tracks, median_depth: float) -> dict:
-    fits = []
+    fits, short = [], []
     for f in frames:
-        gray = _gray(f.image_path)
+        gray, _ = reloc.working_image(_gray(f.image_path))  # the map's working resolution
         coords = reloc.scene_coordinates(gray)
         uv, xyz = observations_of(tracks, f.name)
-        fits.append(view_fit(coords, f.R, f.t, f.camera.K, uv, xyz, median_depth))
+        h, w = gray.shape
+        short.append(min(h, w))
+        uv = uv * np.array([w / f.camera.width, h / f.camera.height])  # COLMAP pixels scale exactly
+        fits.append(view_fit(coords, f.R, f.t, f.camera.scaled(w, h).K, uv, xyz, median_depth))
     if not fits:
         return {"views": 0}
     kp = [v.keypoint_err_rel for v in fits if np.isfinite(v.keypoint_err_rel)]
     return {"views": len(fits),
             "median_reprojection_px": float(np.median([v.median_px for v in fits])),
+            # the same error in pixels of a 480 px short side (ACE's), comparable across working resolutions
+            "median_reprojection_px_at_480": float(np.median([v.median_px * 480 / s for v, s in zip(fits, short)])),
             "cells_within_10px": float(np.mean([v.inlier_10px for v in fits])),
             "median_keypoint_err_pct_depth": float(100 * np.median(kp)) if kp else None,
             "keypoint_observations": int(sum(v.keypoints for v in fits))}
@@ -90,7 +95,7 @@ def main() -> None:
     groups = {"training_views": _spread([f for f in mapping if f.name in trained], args.views),
               "heldout_mapping_views": _spread([f for f in mapping if f.name not in trained], args.views),
               "queries": scene.split("test")}
-    report: dict = {"scene": scene.name, "median_depth": median_depth,
+    report: dict = {"scene": scene.name, "median_depth": median_depth, "working_short_side": reloc.short_side,
                     "buffer": read_buffer_attrs(paths.buffer / "buffer.h5"),
                     "fit": {k: _group(reloc, v, tracks, median_depth) for k, v in groups.items()}}
     images = {f.name: _gray(f.image_path) for f in _spread(mapping, 48)}

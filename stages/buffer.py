@@ -11,7 +11,7 @@ from usvc.config import register_configs
 from usvc.scene_io import read_depth, read_scene_h5
 from usvc.splat.render_io import read_rendered_views
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, write_buffer
+from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, working_short_side, write_buffer
 from usvc.training.keypoint_obs import read_scene_keypoints
 from usvc.weights import load_configured_encoder
 
@@ -37,7 +37,8 @@ def main(cfg: DictConfig) -> None:
     encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights,
                                                cfg.model.encoder)
     b = cfg.buffer
-    short_side = b.short_side or min(frames[0].camera.width, frames[0].camera.height)
+    short_side = working_short_side(min(frames[0].camera.width, frames[0].camera.height), b.short_side,
+                                    cfg.model.max_short_side)
     opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,
                          scale_min=b.scale_min, scale_max=b.scale_max, max_rotation_deg=b.max_rotation_deg,
                          brightness=(b.brightness_min, b.brightness_max), contrast=(b.contrast_min, b.contrast_max),

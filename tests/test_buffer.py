@@ -17,6 +17,7 @@ from usvc.synth.params import RoomParams
 from usvc.synth.writer import generate_scene
 from usvc.training.augment import warp_view
 from usvc.training.buffer import (BufferOptions, fill_buffer, holdout_split, read_buffer, read_buffer_image_names,
+                                  working_short_side,
                                   write_buffer)
 
 
@@ -176,3 +177,14 @@ def test_holdout_split_withholds_every_kth_mapping_image():
     for bad in (1, -2):
         with pytest.raises(UsvcError, match="buffer.holdout_every"):
             holdout_split(frames, bad)
+
+
+def test_working_short_side_scales_large_images_down_and_never_up():
+    # the prepared images' short side, capped by the encoder's pretraining scale
+    assert working_short_side(544, 0, 240) == 240
+    assert working_short_side(240, 0, 240) == 240
+    assert working_short_side(180, 0, 240) == 180  # smaller images keep their size
+    assert working_short_side(544, 0, 0) == 544  # 0 = no limit
+    # an explicit buffer.short_side wins, upscaling included
+    assert working_short_side(544, 360, 240) == 360
+    assert working_short_side(180, 300, 240) == 300

@@ -75,6 +75,7 @@ def test_relocalizer_defaults_are_the_configured_ones():
 
 
 @pytest.mark.parametrize("override, message", [
+    ("model.max_short_side=-1", "model.max_short_side must be >= 0"),
     ("relocalize.min_confidence=1.5", "relocalize.min_confidence=1.5 must be in"),
     ("relocalize.focal_tolerance=-0.1", "relocalize.focal_tolerance=-0.1 must be >= 0"),
 ])
@@ -90,3 +91,11 @@ def test_scripts_compose_the_stage_config_with_its_validation():
     assert (cfg.scene.name, cfg.buffer.holdout_every, cfg.model.encoder) == ("office", 8, "xfeat")
     with pytest.raises(ConfigError, match="model.encoder='foo'"):
         compose_for_script("office", ["model.encoder=foo"])
+
+
+def test_shipped_ace_encoders_work_at_their_pretraining_scale():
+    """The shipped encoders learned from 320x240 renders: maps of larger photos are made at a 240 px
+    short side unless asked otherwise; XFeat keeps the photos' own size."""
+    for model in ("default", "small", "small_real"):
+        assert _compose([f"model={model}"]).model.max_short_side == 240, model
+    assert _compose(["model=xfeat"]).model.max_short_side == 0

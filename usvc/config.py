@@ -63,13 +63,16 @@ class ModelConfig:
     encoder_weights: Optional[str] = None  # null = the encoder shipped for this width (usvc/weights)
     head_width: int = 512
     head_blocks: int = 1
+    # Larger images are scaled down to this short side for mapping and queries (0 = never): the
+    # scale of image content the encoder was pretrained at. buffer.short_side, when set, wins.
+    max_short_side: int = 0
 
 
 @dataclass
 class BufferConfig:
     size: int = 262144  # cells
     samples_per_image: int = 1024
-    short_side: int = 0  # working short side the map is trained and queried at; 0 = the prepared images'
+    short_side: int = 0  # working short side the map is trained and queried at; 0 = the prepared images', at most model.max_short_side
     scale_min: float = 0.6667
     scale_max: float = 1.5
     max_rotation_deg: float = 15.0
@@ -244,8 +247,8 @@ def validate(cfg: Any) -> None:
         raise ConfigError(f"config key relocalize.focal_tolerance={cfg.relocalize.focal_tolerance!r} must be >= 0 (0: no check)")
     if not 0 <= cfg.train.warmup_fraction < 1:
         raise ConfigError(f"config key train.warmup_fraction={cfg.train.warmup_fraction!r} must be in [0, 1)")
-    if cfg.buffer.short_side < 0 or cfg.model.head_blocks < 0:
-        raise ConfigError("config keys buffer.short_side and model.head_blocks must be >= 0")
+    if cfg.buffer.short_side < 0 or cfg.model.head_blocks < 0 or cfg.model.max_short_side < 0:
+        raise ConfigError("config keys buffer.short_side, model.head_blocks and model.max_short_side must be >= 0")
     if cfg.train.bundle_weight < 0 or cfg.buffer.keypoint_obs_per_view < 0:
         raise ConfigError("config keys train.bundle_weight and buffer.keypoint_obs_per_view must be >= 0")
     if not 0 <= cfg.gaussians.sh_degree <= 3:

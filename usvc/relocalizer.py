@@ -183,6 +183,12 @@ class Relocalizer:
         if self.options.refine and self.keypoints_xyz is None:
             log.warning("map %s has no 3D keypoints: keypoint-guided refinement is skipped", self.map_path)
 
+    def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
+        """The image at the map's working short side, as its head was trained, and the resize factor."""
+        if self.short_side and min(gray01.shape) != self.short_side:
+            return resize_to_short_side(gray01, self.short_side)
+        return gray01, 1.0
+
     @torch.inference_mode()
     def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
         """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
@@ -217,10 +223,9 @@ class Relocalizer:
         camera = None
         if given is not None:
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
-        resize = 1.0
-        if self.short_side and min(gray.shape) != self.short_side:
-            gray, resize = resize_to_short_side(gray, self.short_side)
-            camera = camera.scaled(gray.shape[1], gray.shape[0]) if camera is not None else None
+        gray, resize = self.working_image(gray)
+        if resize != 1.0 and camera is not None:
+            camera = camera.scaled(gray.shape[1], gray.shape[0])
         t1 = time.perf_counter()
         coords = self.scene_coordinates(gray)
         t2 = time.perf_counter()

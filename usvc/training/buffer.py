@@ -91,6 +91,16 @@ def _valid_cells(mask: np.ndarray, h_cells: int, w_cells: int) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
+def working_short_side(image_short_side: int, short_side: int = 0, max_short_side: int = 0) -> int:
+    """The short side a map is trained (and queried) at: ``short_side`` when set, else the images'
+    own, scaled down to ``max_short_side`` when that is set and smaller. Never upscales by default."""
+    if short_side > 0:
+        return int(short_side)
+    if max_short_side > 0:
+        return int(min(image_short_side, max_short_side))
+    return int(image_short_side)
+
+
 def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[Frame]]:
     """(training, held out): every ``every``-th mapping image (from the ``every // 2``-th on, so the split
     does not line up with an every-n-th query split) is withheld; ``every`` 0 withholds none."""
