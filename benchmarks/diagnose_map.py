@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from usvc.config import compose_for_script  # noqa: E402
-from usvc.evaluation.diagnosis import observations_of, track_retrieval, view_fit  # noqa: E402
+from usvc.evaluation.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
 from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
 from usvc.exif import read_image_bgr  # noqa: E402
 from usvc.logs import script_logging  # noqa: E402
@@ -57,10 +57,8 @@ def _group(reloc: Relocalizer, frames: list, tracks, median_depth: float) -> dic
         gray, _ = reloc.working_image(_gray(f.image_path))  # the map's working resolution
         coords = reloc.scene_coordinates(gray)
         uv, xyz = observations_of(tracks, f.name)
-        h, w = gray.shape
-        short.append(min(h, w))
-        uv = uv * np.array([w / f.camera.width, h / f.camera.height])  # COLMAP pixels scale exactly
-        fits.append(view_fit(coords, f.R, f.t, f.camera.scaled(w, h).K, uv, xyz, median_depth))
+        short.append(min(gray.shape))
+        fits.append(view_fit_at(coords, gray.shape[::-1], f.camera, f.R, f.t, uv, xyz, median_depth))
     if not fits:
         return {"views": 0}
     kp = [v.keypoint_err_rel for v in fits if np.isfinite(v.keypoint_err_rel)]

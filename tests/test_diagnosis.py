@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.evaluation.diagnosis import BEHIND_PX, keypoint_errors, reprojection_px, track_retrieval, view_fit
+from usvc.evaluation.diagnosis import BEHIND_PX, keypoint_errors, reprojection_px, track_retrieval, view_fit, view_fit_at
 from usvc.model.encoder import Encoder, cell_centers
+from usvc.scene import Camera
 from usvc.tracks import Tracks
 
 K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
@@ -64,3 +65,19 @@ def test_track_retrieval_probe_scores_an_encoder_by_nearest_neighbours_across_im
     # the second image's observations shuffled among the tracks: no nearest neighbour is the track's own
     shuffled = track_retrieval(encoder, {"a": image, "b": image}, _tracks(uv, np.roll(uv, 1, axis=0)))
     assert shuffled["same_track_nn"] == 0.0
+
+
+def test_a_map_at_a_smaller_working_resolution_is_scored_in_its_own_pixels():
+    """A 128x96 photo mapped at half size: coordinates exact for the half-size camera reproject to 0 px
+    there, and the photo's own keypoints (full-size pixels) land on the right cells."""
+    camera = Camera("PINHOLE", 128, 96, (200.0, 200.0, 64.0, 48.0))
+    R, t = np.eye(3), np.zeros(3)
+    coords = _backproject(6, 8, 2.0, R, t)  # K above is this camera at 64x48
+    np.testing.assert_allclose(camera.scaled(64, 48).K, K)
+    uv_half = np.array([[4.5, 4.5], [28.5, 20.5]])  # cell centres of the 64x48 image
+    xyz = np.linalg.solve(K, np.vstack([uv_half.T, np.ones(2)])).T * 2.0
+    fit = view_fit_at(coords, (64, 48), camera, R, t, uv_half * 2, xyz, median_depth=2.0)
+    assert fit.median_px < 1e-9 and fit.inlier_10px == 1.0
+    assert fit.keypoints == 2 and fit.keypoint_err_rel < 1e-6
+    # scored at the photo's own size instead, the same keypoints would miss their cells
+    assert view_fit(coords, R, t, camera.K, uv_half * 2, xyz, 2.0).median_px > 10

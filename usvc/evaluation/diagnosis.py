@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from usvc.model.encoder import Encoder, cell_centers
+from usvc.scene import Camera
 from usvc.model.preprocess import normalise
 from usvc.tracks import Tracks
 from usvc.training.keypoint_obs import sample_features
@@ -65,6 +66,17 @@ def view_fit(coords: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, uv
     kp = keypoint_errors(coords, uv, xyz)
     return ViewFit(float(np.median(err)), float(np.mean(err < 10.0)),
                    float(np.median(kp) / median_depth) if len(kp) else float("nan"), int(len(kp)))
+
+
+def view_fit_at(coords: np.ndarray, image_size: tuple[int, int], camera: Camera, R: np.ndarray, t: np.ndarray,
+                uv: np.ndarray, xyz: np.ndarray, median_depth: float) -> ViewFit:
+    """`view_fit` of coordinates predicted on the image resized to ``image_size`` (width, height), a
+    map's working resolution: the camera and the observations (COLMAP pixels, which scale exactly)
+    are scaled to that size, so errors are in working-image pixels."""
+    w, h = image_size
+    scaled = camera.scaled(w, h)
+    return view_fit(coords, R, t, scaled.K, np.asarray(uv, np.float64) * [w / camera.width, h / camera.height],
+                    xyz, median_depth)
 
 
 def observations_of(tracks: Tracks, image_name: str) -> tuple[np.ndarray, np.ndarray]:
