@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 
 from usvc.model.encoder import Encoder, cell_centers
-from usvc.scene import Camera
 from usvc.model.preprocess import normalise
+from usvc.scene import Camera
 from usvc.tracks import Tracks
 from usvc.training.keypoint_obs import sample_features
 
