@@ -106,12 +106,12 @@ def main() -> None:
         if len(heldout) >= 2:  # views no encoder fine-tuned on the scene's mapping images has seen
             report["track_retrieval_heldout"][name] = track_retrieval(encoder, heldout, tracks)
     for name in ("train", "metrics", "baseline"):
-        p = Path(cfg.results_dir) / scene.name / f"{name}.json"
+        p = Path(cfg.results_dir) / cfg.scene.name / f"{name}.json"
         if p.is_file():
             data = json.loads(p.read_text())
             report[name] = {k: v for k, v in (data.get("mean", data)).items()
                             if isinstance(v, (int, float)) and not k.endswith("_curve")}
-    out = args.out or Path(cfg.results_dir) / scene.name / "diagnosis.json"
+    out = args.out or Path(cfg.results_dir) / cfg.scene.name / "diagnosis.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(json.dumps({k: report[k] for k in ("fit", "track_retrieval", "track_retrieval_heldout")}, indent=1))
 
