@@ -99,3 +99,12 @@ def test_shipped_ace_encoders_work_at_their_pretraining_scale():
     for model in ("default", "small", "small_real"):
         assert _compose([f"model={model}"]).model.max_short_side == 240, model
     assert _compose(["model=xfeat"]).model.max_short_side == 0
+
+
+def test_multiview_methods_share_the_train_groups_bundle_weight():
+    """method=multiview and multiview_gs differ only in the rendered views, and the train group's
+    own value is the multi-view one, so composing without a method group trains the same map."""
+    weights = {m: _compose([f"method={m}"]).train.bundle_weight for m in ("single", "multiview", "multiview_gs")}
+    own = yaml.safe_load((REPO / "conf" / "train" / "default.yaml").read_text())["bundle_weight"]
+    assert weights["single"] == 0.0
+    assert weights["multiview"] == weights["multiview_gs"] == own > 0, (weights, own)

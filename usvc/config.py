@@ -102,7 +102,7 @@ class TrainConfig:
     invalid_depth_rel: float = 5.0
     max_reproj_px: float = 1000.0
     reproj_weight: float = 1.0  # lambda_pi (paper eq. 8)
-    bundle_weight: float = 1.0  # lambda_B (paper eq. 8); 0 = ACE-style single-view training
+    bundle_weight: float = 0.25  # lambda_B (paper eq. 8, where it is 1.0); 0 = ACE-style single-view training
     bundle_loss: str = "tanh"  # tanh (ACE's soft clamp, shares the threshold schedule) | squared (eq. 7 as printed)
     bundle_groups_per_batch: int = 64  # whole keypoint groups mixed into every batch of pixel samples
     bundle_obs_per_group: int = 16  # observations drawn per group (all of them when fewer)
