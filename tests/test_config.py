@@ -47,6 +47,17 @@ def test_unknown_key_and_wrong_type_fail_at_compose():
         _compose(["keypoints.tau=abc"])
 
 
+@pytest.mark.parametrize("override, message", [
+    ("+keypoints.taux=1", r"keypoints.taux is not a setting of usvc \(did you mean keypoints.tau\?\)"),
+    ("+keypoint.tau=1000", r"config key keypoint is not a setting of usvc \(did you mean keypoints\?\)"),
+    ("++train.iteration=5", r"train.iteration is not a setting"),
+])
+def test_keys_added_with_plus_are_refused(override, message):
+    """Hydra composes `+key=value` even where the schema has no such key; validation refuses it."""
+    with pytest.raises(ConfigError, match=message):
+        validate(_compose([override]))
+
+
 def test_value_outside_choices_names_the_key():
     with pytest.raises(ConfigError, match=r"sfm.matching='fancy'"):
         validate(_compose(["sfm.matching=fancy"]))

@@ -224,8 +224,33 @@ def _get(cfg: Any, dotted: str) -> Any:
     return node
 
 
+def _known_keys() -> list[str]:
+    top = [f.name for f in fields(Config)]
+    return top + [f"{g}.{f.name}" for g, schema in GROUP_SCHEMAS.items() for f in fields(schema)]
+
+
+def _check_keys(cfg: Any) -> None:
+    """Every key must be one of the schema's: Hydra's `+key=value` (and `++`) can add keys that the
+    schema does not have, which the stages would otherwise ignore or trip over deep inside."""
+    import difflib
+
+    from omegaconf import DictConfig
+
+    if not isinstance(cfg, DictConfig):
+        return
+    known = _known_keys()
+    found = [k for k in cfg.keys() if k != "hydra"]
+    found += [f"{g}.{k}" for g in GROUP_SCHEMAS if isinstance(cfg.get(g), DictConfig) for k in cfg[g].keys()]
+    for key in found:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise ConfigError(f"config key {key} is not a setting of usvc{hint}")
+
+
 def validate(cfg: Any) -> None:
-    """Reject values outside their allowed set; Hydra has already checked keys and types."""
+    """Reject unknown keys and values outside their allowed set (Hydra has checked the types)."""
+    _check_keys(cfg)
     for key, choices in _CHOICES.items():
         value = _get(cfg, key)
         if value not in choices:
