@@ -271,5 +271,54 @@ def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
         Relocalizer(truncated, weights)
     with pytest.raises(ModelError, match="map file does not exist"):
         Relocalizer(tmp_path / "missing.map.pt", weights)
-    with pytest.raises(UsvcError, match="unknown PnP backend"):
+    with pytest.raises(UsvcError, match=r"backend='magic' is not one of"):
         Relocalizer(map_path, weights, RelocalizeOptions(backend="magic"))
+    with pytest.raises(UsvcError, match="map_path must be the path of a map.pt, got NoneType"):
+        Relocalizer(None)  # type: ignore[arg-type]
+    with pytest.raises(UsvcError, match="'banana' is not a torch device"):
+        Relocalizer(map_path, weights, device="banana")
+    if not torch.cuda.is_available():
+        with pytest.raises(UsvcError, match="CUDA is not available"):
+            Relocalizer(map_path, weights, device="cuda")
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"max_error_px": -3.0}, r"max_error_px=-3.0 must be > 0"),
+    ({"min_inliers": 0}, r"min_inliers=0 must be > 0"),
+    ({"min_confidence": 1.5}, r"min_confidence=1.5 must be in \[0, 1\]"),
+    ({"focal_tolerance": -0.1}, r"focal_tolerance=-0.1 must be >= 0"),
+])
+def test_options_are_refused_as_typed(kwargs: dict, message: str) -> None:
+    """The value named is the one given, not the threshold rescaled to the working size."""
+    with pytest.raises(UsvcError, match=message):
+        RelocalizeOptions(**kwargs)
+
+
+def test_api_misuse_is_one_clear_error(tiny_map: tuple[Path, Path], exact: list) -> None:
+    reloc = Relocalizer(*tiny_map)
+    with pytest.raises(UsvcError, match="intrinsics must be .* got a dict"):
+        reloc.localize(photo(160, 120), {"fx": 130.0, "fy": 125.0})  # type: ignore[arg-type]
+    with pytest.raises(UsvcError, match="intrinsics must be .* got list"):
+        reloc.localize(photo(160, 120), [130.0, "fx"])  # type: ignore[list-item]
+    with pytest.raises(UsvcError, match="channels='hsv'"):
+        reloc.localize(photo(160, 120), 130.0, channels="hsv")
+    with pytest.raises(UsvcError, match=r"image is 4000x32, an aspect ratio of 125.0:1"):
+        reloc.localize(photo(4000, 32), 130.0)
+
+
+def test_bgr_arrays_are_read_as_bgr(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """channels='bgr' gives the network the same grey image as the RGB array would."""
+    seen: list[np.ndarray] = []
+
+    def fake(self: Relocalizer, gray01: np.ndarray) -> np.ndarray:
+        seen.append(gray01.copy())
+        return exact_coordinates(15, 20)
+
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", fake)
+    reloc = Relocalizer(*tiny_map)
+    rgb = photo(160, 120)
+    reloc.localize(rgb, WORK_CAMERA)
+    reloc.localize(np.ascontiguousarray(rgb[..., ::-1]), WORK_CAMERA, channels="bgr")
+    reloc.localize(np.ascontiguousarray(rgb[..., ::-1]), WORK_CAMERA)  # the common mistake
+    np.testing.assert_allclose(seen[0], seen[1], atol=1e-6)  # the weighted sum's order differs
+    assert np.abs(seen[0] - seen[2]).max() > 0.05

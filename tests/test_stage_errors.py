@@ -88,3 +88,27 @@ def test_unknown_format(tmp_path, llff):
         cwd=REPO, capture_output=True, text=True,
     )
     _assert_clean_failure(proc, tmp_path, "scene.format='nerf'")
+
+
+def test_ctrl_c_prints_one_line_and_leaves_nothing(tmp_path):
+    """SIGINT while the generate stage renders: one line, exit 130, no artifact, no temporary dir."""
+    import signal
+    import time
+
+    raw = tmp_path / "raw" / "mini"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "stages.generate", "scene=mini", f"scene.path={raw}",
+         f"results_dir={tmp_path / 'results'}", f"hydra.run.dir={tmp_path / 'log'}"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    deadline = time.time() + 120
+    while not list(raw.parent.glob(".mini.tmp-*")) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)  # wait until it is writing frames
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130, out
+    assert "Traceback" not in out
+    errors = [line for line in out.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and "generate interrupted, nothing written" in errors[0], out
+    assert not raw.exists() and not list(raw.parent.glob(".mini.tmp-*"))
+    assert not (tmp_path / "results" / "mini" / "generate.json").exists()

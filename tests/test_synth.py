@@ -78,7 +78,7 @@ def test_writes_the_ace_layout(scene: tuple[Path, RoomParams, dict]) -> None:
     assert float((root / "test" / "calibration" / f"{test[0]}.calibration.txt").read_text()) == params.focal
     record = json.loads((root / "scene.json").read_text())
     assert record["params"] == dataclasses.asdict(params) and record["counts"] == {"train": 60, "test": 20}
-    assert not list(root.parent.glob("room.tmp-*"))
+    assert not list(root.parent.glob(".room.tmp-*"))
 
 
 def test_depth_is_positive_and_bounded(scene: tuple[Path, RoomParams, dict]) -> None:

@@ -33,6 +33,7 @@ from usvc.weights import load_configured_encoder
 log = logging.getLogger(__name__)
 
 MIN_IMAGE_SIDE = 32
+MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
 
 Intrinsics = float | Sequence[float] | np.ndarray | Camera
 CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
@@ -53,6 +54,20 @@ class RelocalizeOptions:
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: stop refining
+
+    def __post_init__(self) -> None:
+        """Refuse bad values as given (before any rescaling), naming the option."""
+        if self.backend not in ("opencv", "pycolmap"):
+            raise UsvcError(f"relocalize option backend={self.backend!r} is not one of ['opencv', 'pycolmap']")
+        for name in ("max_error_px", "reference_short_side", "min_inliers", "refine_radius_px",
+                     "refine_max_iterations", "refine_delta", "refine_min_correspondences"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise UsvcError(f"relocalize option {name}={value!r} must be > 0")
+        if not 0 <= self.min_confidence <= 1:
+            raise UsvcError(f"relocalize option min_confidence={self.min_confidence!r} must be in [0, 1]")
+        if not self.focal_tolerance >= 0:
+            raise UsvcError(f"relocalize option focal_tolerance={self.focal_tolerance!r} must be >= 0 (0: no check)")
 
     def refine_options(self) -> RefineOptions:
         return RefineOptions(radius_px=self.refine_radius_px, max_iterations=self.refine_max_iterations,
@@ -128,7 +143,14 @@ def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> C
         if (cam.width, cam.height) != (width, height):
             raise UsvcError(f"the camera is {cam.width}x{cam.height} but the image is {width}x{height}")
         return cam
-    arr = np.asarray(intrinsics, dtype=np.float64)
+    if isinstance(intrinsics, (dict, str, bytes)):
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
+                        f"got a {type(intrinsics).__name__}")
+    try:
+        arr = np.asarray(intrinsics, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
+                        f"got {type(intrinsics).__name__} {intrinsics!r:.80}") from None
     if arr.size == 1:
         fx = fy = float(arr.reshape(-1)[0])
         cx, cy = width / 2, height / 2
@@ -146,14 +168,28 @@ def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> C
     return Camera("PINHOLE", width, height, (fx, fy, cx, cy))
 
 
-def _as_gray(image: np.ndarray | str | Path) -> np.ndarray:
-    """Path or uint8 RGB/grey array -> float luma in [0, 1]."""
+def _as_gray(image: np.ndarray | str | Path, channels: str = "rgb") -> np.ndarray:
+    """Path or uint8 RGB/BGR/grey array -> float luma in [0, 1]."""
+    if channels not in ("rgb", "bgr"):
+        raise UsvcError(f"channels={channels!r} must be 'rgb' (PIL, imageio) or 'bgr' (cv2.imread)")
     if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
         return luma01(read_image_bgr(image), rgb=False)
     arr = np.asarray(image)
     if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
         raise UsvcError(f"image must be a uint8 HxW or HxWx3 RGB array, got {arr.dtype} {arr.shape}")
-    return luma01(arr, rgb=True)
+    return luma01(arr, rgb=channels == "rgb")
+
+
+def _check_device(device: str) -> str:
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise UsvcError(f"device={device!r} is not a torch device (e.g. 'cpu', 'cuda', 'cuda:1')") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UsvcError(f"device={device!r}: CUDA is not available on this machine (use device='cpu')")
+    if dev.type not in ("cpu", "cuda"):
+        raise UsvcError(f"device={device!r}: usvc runs on 'cpu' or 'cuda'")
+    return device
 
 
 class Relocalizer:
@@ -161,6 +197,9 @@ class Relocalizer:
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
                  options: RelocalizeOptions | None = None, device: str = "cpu") -> None:
+        if not isinstance(map_path, (str, Path)):
+            raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
+        device = _check_device(device)
         self.options = options or RelocalizeOptions()
         if self.options.backend not in BACKENDS:
             raise UsvcError(f"unknown PnP backend {self.options.backend!r}; known: {list(BACKENDS)}")
@@ -210,15 +249,23 @@ class Relocalizer:
         return (f"the image implies a focal length {ratio:.2f}x the given one "
                 f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")
 
-    def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None) -> PoseEstimate:
+    def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None, *,
+                 channels: str = "rgb") -> PoseEstimate:
         """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
         (principal point at the image centre, no distortion); a distorted Camera is undistorted
-        first, exactly as the prepare stage undistorts mapping images."""
+        first, exactly as the prepare stage undistorts mapping images.
+
+        An array is uint8, HxW grey or HxWx3 in RGB order (``channels="rgb"``, as PIL and imageio
+        give it) or BGR (``channels="bgr"``, as ``cv2.imread`` gives it); a path is read with its
+        EXIF orientation applied."""
         t0 = time.perf_counter()
-        gray = _as_gray(image)
+        gray = _as_gray(image, channels)
         h, w = gray.shape
         if min(h, w) < MIN_IMAGE_SIDE:
             raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
+        if max(h, w) > MAX_ASPECT * min(h, w):
+            raise UsvcError(f"image is {w}x{h}, an aspect ratio of {max(h, w) / min(h, w):.1f}:1; usvc localizes "
+                            f"photos up to {MAX_ASPECT}:1 (a strip or panorama is not a camera view it can map)")
         given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
         camera = None
         if given is not None:

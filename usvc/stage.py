@@ -42,7 +42,7 @@ def write_json(path: Path, payload: dict[str, Any]) -> None:
 
 
 def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
-    """Validate, run, and turn a UsvcError into one log line and exit status 1."""
+    """Validate, run, and turn a UsvcError into one log line and exit status 1 (Ctrl-C: one line, 130)."""
 
     @functools.wraps(fn)
     def wrapper(cfg: DictConfig) -> None:
@@ -54,6 +54,9 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
         except UsvcError as err:
             log.error("%s failed: %s", Path(sys.argv[0]).stem, err)
             sys.exit(1)
+        except KeyboardInterrupt:  # artifacts are written atomically, so nothing half-written stays
+            log.error("%s interrupted, nothing written", Path(sys.argv[0]).stem)
+            sys.exit(130)
 
     return wrapper
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +19,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from usvc.atomic import atomic_dir
 from usvc.errors import UsvcError
 from usvc.synth.params import RoomParams, validate
 from usvc.synth.room import Layout, cast, make_layout, pixel_rects
@@ -151,10 +150,7 @@ def generate_scene(out_dir: Path, params: RoomParams) -> dict:
     validate(params)
     out_dir = Path(out_dir)
     start = time.perf_counter()
-    tmp = out_dir.with_name(f"{out_dir.name}.tmp-{os.getpid()}")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    try:
+    with atomic_dir(out_dir) as tmp:
         layout = make_layout(params)
         sequences = make_sequences(params, layout)
         atlas = build_atlas(layout, params)
@@ -163,12 +159,6 @@ def generate_scene(out_dir: Path, params: RoomParams) -> dict:
         counts = _write_frames(tmp, Renderer(params, layout, atlas), sequences)
         record = _scene_record(params, layout, sequences, counts)
         (tmp / "scene.json").write_text(json.dumps(record, indent=2) + "\n")
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     seconds = time.perf_counter() - start
     log.info("wrote %s: %s frames in %.1f s", out_dir, counts, seconds)
     return {"train_frames": counts.get("train", 0), "test_frames": counts.get("test", 0), "seconds": seconds}
