@@ -164,10 +164,9 @@ def _read_state_dict(path: Path) -> Mapping[str, object]:
             return load_file(str(path), device="cpu")
         except Exception as exc:
             raise ModelError(f"{path}: cannot read encoder weights ({_first_line(exc)})") from exc
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ModelError(f"{path}: cannot read encoder weights ({_first_line(exc)})") from exc
+    from usvc.model.safe_load import load_tensors
+
+    return load_tensors(path, "encoder weights")
 
 
 def check_state_dict(path: Path, state: object, model: nn.Module, what: str) -> None:

@@ -21,6 +21,7 @@ from torch import nn
 from usvc.atomic import atomic_file
 from usvc.model.encoder import Encoder, _first_line, check_state_dict, encoder_fingerprint
 from usvc.model.errors import ModelError
+from usvc.model.safe_load import load_tensors
 
 log = logging.getLogger(__name__)
 
@@ -232,12 +233,7 @@ def read_map_header(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"{path}: map file does not exist")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ModelError(
-            f"{path}: cannot read map, file corrupt or truncated ({_first_line(exc)})"
-        ) from exc
+    payload = load_tensors(path, "map")
     if not isinstance(payload, dict) or payload.get("format") != MAP_FORMAT:
         raise ModelError(f"{path}: not a usvc map file")
     if payload.get("version") != MAP_VERSION:

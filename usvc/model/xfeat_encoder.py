@@ -23,6 +23,7 @@ from torch import nn
 
 from usvc.model.encoder import OUTPUT_STRIDE, check_state_dict, feature_size
 from usvc.model.errors import ModelError
+from usvc.model.safe_load import load_tensors
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +84,7 @@ def load_xfeat_encoder(path: str | Path | None = None) -> XFeatEncoder:
     path = Path(path) if path else shipped_xfeat_weights()
     if not path.is_file():
         raise ModelError(f"{path}: XFeat weights file does not exist")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ModelError(f"{path}: cannot read XFeat weights ({type(exc).__name__})") from exc
+    state = load_tensors(path, "XFeat weights")
     encoder = XFeatEncoder()
     check_state_dict(path, state, encoder.net, "XFeat weights")
     encoder.net.load_state_dict(state, strict=True)
