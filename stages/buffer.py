@@ -13,6 +13,7 @@ from usvc.splat.render_io import read_rendered_views
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, working_short_side, write_buffer
 from usvc.training.keypoint_obs import read_scene_keypoints
+from usvc.model.encoder import encoder_fingerprint
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")
@@ -48,7 +49,8 @@ def main(cfg: DictConfig) -> None:
                       depths=depths if any(d is not None for d in depths) else None)
     out, metrics_path = stage_outputs(cfg, "buffer")
     with atomic_dir(out) as tmp:
-        write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name)
+        write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name,
+                     encoder_fingerprint=encoder_fingerprint(encoder))
         megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
     stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames) - n_rendered,
              "rendered_images": n_rendered,

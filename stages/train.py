@@ -12,7 +12,7 @@ from usvc.evaluation.median_depth import median_scene_depth
 from usvc.model.head import Regressor, save_map
 from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
 from usvc.tracks import read_tracks
-from usvc.training.buffer import read_buffer, read_buffer_attrs
+from usvc.training.buffer import check_buffer_encoder, read_buffer, read_buffer_attrs
 from usvc.training.train_head import TrainOptions, train_head
 from usvc.weights import load_configured_encoder
 
@@ -26,13 +26,17 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     paths = scene_paths(cfg)
     buffer_file = paths.buffer / "buffer.h5"
-    buf, attrs = read_buffer(buffer_file), read_buffer_attrs(buffer_file)
+    # Every input is read and checked before the long step: the encoder the map will carry must
+    # be the one whose features fill the buffer.
+    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights,
+                                               cfg.model.encoder)
+    attrs = read_buffer_attrs(buffer_file)
+    check_buffer_encoder(buffer_file, attrs, encoder, weights)
+    buf = read_buffer(buffer_file)
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
     opts = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
                         seed=cfg.seed)
     head, summary = train_head(buf, median_depth, opts)
-    encoder, weights = load_configured_encoder(cfg.model.encoder_width, cfg.model.encoder_weights,
-                                               cfg.model.encoder)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,

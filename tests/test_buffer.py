@@ -188,3 +188,25 @@ def test_working_short_side_scales_large_images_down_and_never_up():
     # an explicit buffer.short_side wins, upscaling included
     assert working_short_side(544, 360, 240) == 360
     assert working_short_side(180, 300, 240) == 300
+
+
+def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, caplog):
+    """The buffer records its encoder's fingerprint; a different configured encoder is refused at once."""
+    from pathlib import Path
+
+    from usvc.model.encoder import encoder_fingerprint
+    from usvc.training.buffer import check_buffer_encoder, read_buffer_attrs
+
+    frames = read_scene_h5(scene).split("train")
+    path = tmp_path / "b.h5"
+    write_buffer(path, fill_buffer(frames, encoder, OPTS), encoder_file="a.pt",
+                 encoder_fingerprint=encoder_fingerprint(encoder))
+    attrs = read_buffer_attrs(path)
+    check_buffer_encoder(path, attrs, encoder, Path("a.pt"))  # the same encoder passes
+    torch.manual_seed(1)
+    other = Encoder(width=0.25)
+    with pytest.raises(UsvcError, match=r"b.h5 holds features of encoder a.pt, but the configured encoder is b.pt"):
+        check_buffer_encoder(path, attrs, other, Path("b.pt"))
+    old = {k: v for k, v in attrs.items() if k != "encoder_fingerprint"}
+    check_buffer_encoder(path, old, other, Path("b.pt"))  # an older buffer: a warning, not an error
+    assert "records no encoder fingerprint" in caplog.text

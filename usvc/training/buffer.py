@@ -219,6 +219,22 @@ def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) ->
             kp["xyz"] = buf.keypoint_xyz
 
 
+def check_buffer_encoder(path: Path, attrs: dict, encoder: torch.nn.Module, weights: Path) -> None:
+    """The head must be trained on features of the encoder the map will carry: refuse a buffer
+    whose recorded encoder fingerprint differs from the configured encoder's."""
+    from usvc.model.encoder import encoder_fingerprint
+
+    recorded = attrs.get("encoder_fingerprint")
+    if recorded is None:
+        log.warning("%s records no encoder fingerprint (an older buffer): cannot check it matches %s",
+                    path, weights.name)
+        return
+    if recorded != encoder_fingerprint(encoder):
+        raise UsvcError(f"{path} holds features of encoder {attrs.get('encoder_file', '?')}, but the configured "
+                        f"encoder is {weights.name} (another model.* setting?): rerun the buffer stage with "
+                        "the same model config, or train with the buffer's")
+
+
 def read_buffer_attrs(path: Path) -> dict:
     with h5py.File(path, "r") as h5:
         return {k: (v.item() if hasattr(v, "item") else v) for k, v in h5.attrs.items()}
