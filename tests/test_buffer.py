@@ -199,7 +199,7 @@ def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, 
 
     frames = read_scene_h5(scene).split("train")
     path = tmp_path / "b.h5"
-    write_buffer(path, fill_buffer(frames, encoder, OPTS), encoder_file="a.pt",
+    write_buffer(path, fill_buffer(frames, encoder, OPTS), short_side=240, encoder_file="a.pt",
                  encoder_fingerprint=encoder_fingerprint(encoder))
     attrs = read_buffer_attrs(path)
     check_buffer_encoder(path, attrs, encoder, Path("a.pt"))  # the same encoder passes

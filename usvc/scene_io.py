@@ -12,6 +12,7 @@ import numpy as np
 
 from usvc.errors import SceneError
 from usvc.scene import CAMERA_MODELS, Camera, Frame, Scene
+from usvc.h5read import read_h5
 
 SCENE_FILE = "scene.h5"
 IMAGE_DIR = "images"
@@ -78,7 +79,7 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
     path = prepared_dir / SCENE_FILE
     if not path.is_file():
         raise SceneError(f"prepared scene not found: {path} (run the prepare stage first)")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "prepared scene") as h5:
         names, splits = _strings(h5["name"]), _strings(h5["split"])
         cameras = _cameras_from(_strings(h5["camera_model"]), h5["camera_size"][()], h5["camera_params"][()])
         R, t = h5["R_world_to_cam"][()], h5["t_world_to_cam"][()]
@@ -98,7 +99,7 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
 
 def read_source_cameras(prepared_dir: Path) -> list[Camera] | None:
     """The imported (distorted, full-size) camera of every frame, or None for older files."""
-    with h5py.File(Path(prepared_dir) / SCENE_FILE, "r") as h5:
+    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
         if "source_camera_model" not in h5:
             return None
         return _cameras_from(_strings(h5["source_camera_model"]), h5["source_camera_size"][()],
@@ -107,7 +108,7 @@ def read_source_cameras(prepared_dir: Path) -> list[Camera] | None:
 
 def read_depth(prepared_dir: Path, index: int) -> np.ndarray | None:
     """Depth of frame `index` in scene units at working resolution, if the scene has depth."""
-    with h5py.File(Path(prepared_dir) / SCENE_FILE, "r") as h5:
+    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
         if "depth" not in h5 or str(index) not in h5["depth"]:
             return None
         return h5["depth"][str(index)][()]

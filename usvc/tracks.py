@@ -14,6 +14,7 @@ import numpy as np
 import pycolmap
 
 from usvc.errors import SfmError
+from usvc.h5read import read_h5
 
 
 @dataclass
@@ -112,7 +113,7 @@ def read_tracks(path: Path) -> Tracks:
     path = Path(path)
     if not path.is_file():
         raise SfmError(f"tracks file not found: {path} (run the sfm stage first)")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "SfM tracks") as h5:
         names = [n.decode() if isinstance(n, bytes) else n for n in h5["images/name"][()]]
         return Tracks(
             image_names=names, R=h5["images/R_world_to_cam"][()], t=h5["images/t_world_to_cam"][()],

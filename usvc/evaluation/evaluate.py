@@ -20,6 +20,7 @@ from usvc.errors import UsvcError
 from usvc.evaluation.pose_errors import rotation_error_deg, summarize, translation_error
 from usvc.geometry import camera_centers
 from usvc.scene import Scene
+from usvc.h5read import read_h5
 
 PER_QUERY_COLUMNS: tuple[str, ...] = (
     "name", "rot_deg", "trans", "trans_cm", "failed", "inliers",
@@ -41,7 +42,7 @@ def read_query_stats(path: Path | str) -> dict[str, QueryStats]:
     path = Path(path)
     if not path.is_file():
         raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "query statistics") as h5:
         missing = [k for k in ("name", "inliers", "seconds", "success") if k not in h5]
         if missing:
             raise UsvcError(f"{path}: missing dataset(s) {missing}")
@@ -133,7 +134,7 @@ def read_refinement_records(path: Path | str) -> RefinementRecords | None:
     path = Path(path)
     if not path.is_file():
         raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "query statistics") as h5:
         present = [k for k in REFINEMENT_DATASETS if k in h5]
         if not present:
             return None

@@ -12,6 +12,7 @@ import numpy as np
 from usvc.errors import UsvcError
 from usvc.scene import Camera, Frame
 from usvc.splat.novel_views import NovelView
+from usvc.h5read import read_h5
 
 
 def write_rendered_views(out_dir: Path, views: list[NovelView]) -> None:
@@ -41,7 +42,7 @@ def read_rendered_views(render_dir: Path) -> tuple[list[Frame], dict[str, tuple[
         raise UsvcError(f"rendered views not found: {path} (run the render stage, or use a method without "
                         "rendered views)")
     frames, obs = [], {}
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "rendered views") as h5:
         R, t, K, size = h5["R"][()], h5["t"][()], h5["K"][()], h5["size"][()]
         off, kp, uv = h5["obs/offset"][()], h5["obs/keypoint"][()], h5["obs/uv"][()].astype(np.float64)
     for i in range(len(R)):

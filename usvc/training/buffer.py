@@ -24,6 +24,7 @@ from usvc.model.preprocess import luma01, normalise
 from usvc.scene import Frame
 from usvc.training.augment import augment
 from usvc.training.keypoint_obs import SceneKeypoints, sample_features, view_observations
+from usvc.h5read import read_h5
 
 log = logging.getLogger(__name__)
 
@@ -236,13 +237,16 @@ def check_buffer_encoder(path: Path, attrs: dict, encoder: torch.nn.Module, weig
 
 
 def read_buffer_attrs(path: Path) -> dict:
-    with h5py.File(path, "r") as h5:
+    """The attributes the buffer stage records (working short side, encoder file and fingerprint)."""
+    with read_h5(path, "training buffer") as h5:
+        if "short_side" not in h5.attrs:
+            raise KeyError("no short_side attribute")
         return {k: (v.item() if hasattr(v, "item") else v) for k, v in h5.attrs.items()}
 
 
 def read_buffer_image_names(path: Path) -> list[str]:
     """The names of the images a buffer was built from (without loading its features)."""
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "training buffer") as h5:
         return [n.decode() if isinstance(n, bytes) else str(n) for n in h5["image_names"][()]]
 
 
@@ -250,7 +254,7 @@ def read_buffer(path: Path) -> TrainingBuffer:
     path = Path(path)
     if not path.is_file():
         raise UsvcError(f"training buffer not found: {path}")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "training buffer") as h5:
         buf = TrainingBuffer(
             features=h5["features"][()], pixels=h5["pixels"][()], view_index=h5["view_index"][()],
             view_image=h5["views/image"][()], view_R=h5["views/R_world_to_cam"][()],

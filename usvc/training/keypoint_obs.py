@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from usvc.errors import KeypointError
 from usvc.model.encoder import OUTPUT_STRIDE
 from usvc.training.augment import AugmentedView
+from usvc.h5read import read_h5
 
 
 @dataclass
@@ -34,7 +35,7 @@ def read_scene_keypoints(path: Path) -> SceneKeypoints:
     path = Path(path)
     if not path.is_file():
         raise KeypointError(f"keypoints file not found: {path} (run the keypoints stage first)")
-    with h5py.File(path, "r") as h5:
+    with read_h5(path, "keypoints") as h5:
         names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["images/name"][()]]
         xyz = h5["keypoints/xyz"][()].astype(np.float64)
         offset = h5["keypoints/track_offset"][()]
