@@ -122,6 +122,23 @@ def test_localize_errors(files: dict[str, Path], extra: list[str], photo: str, c
     assert proc.stdout == ""
 
 
+def test_a_photo_that_fails_to_decode_keeps_the_others(files: dict[str, Path], tmp_path: Path) -> None:
+    """A truncated JPEG (its header reads, its pixels do not) is that photo's record, not the run's end."""
+    good = tmp_path / "good.jpg"
+    cv2.imwrite(str(good), cv2.imread(str(files["photo"])))
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    for mode in ([], ["--json-list"]):
+        proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], *mode,
+                    "--focal", "130", good, cut, good)
+        assert proc.returncode == 1, proc.stderr
+        records = json.loads(proc.stdout) if mode else [json.loads(line) for line in proc.stdout.splitlines()]
+        assert [r["name"] for r in records] == [str(good), str(cut), str(good)]
+        assert KEYS <= set(records[0]) and KEYS <= set(records[2])
+        assert records[1]["success"] is False and "truncated or corrupt JPEG" in records[1]["error"]
+        assert "Traceback" not in proc.stderr and "cut.jpg" in proc.stderr
+
+
 # ------------------------------------------------------------ batches, intrinsics sources, exports
 
 def test_version() -> None:

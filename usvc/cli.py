@@ -161,10 +161,12 @@ def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]
 
 
 def _localize(args: argparse.Namespace) -> int:
-    """Localize each photo; the first bad input stops the run with one line on stderr (exit 1).
+    """Localize each photo.
 
     Flags, photo paths, headers and intrinsics are checked before the map is loaded, so a typo
-    fails in milliseconds rather than after the network is built; --out-dir files are written
+    fails in milliseconds, with one line on stderr (exit 1), rather than after the network is
+    built. A photo that turns out unreadable later (e.g. a truncated JPEG) gets its own record
+    with "error" and the others go on; the exit status is then 1. --out-dir files are written
     only at the end, each atomically.
     """
     from usvc.exports import Posed, check_names, export
@@ -203,9 +205,20 @@ def _localize(args: argparse.Namespace) -> int:
     posed: list[Posed] = []
     bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
                disable=len(photos) < 2 or not sys.stderr.isatty())
+    errors = 0
     for (name, path), (cam, source) in bar:
-        rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
-        estimate = relocalizer.localize(rgb, cam)
+        try:  # one unreadable photo is that photo's failure, not the end of the others'
+            rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
+            estimate = relocalizer.localize(rgb, cam)
+        except UsvcError as err:
+            errors += 1
+            log.error("%s: %s", name, err)
+            record = {"name": name, "success": False, "error": str(err)}
+            records.append(record)
+            if not args.json_list:
+                tqdm.write(json.dumps(record), file=sys.stdout)
+                sys.stdout.flush()
+            continue
         record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
         records.append(record)
         if estimate.success:
@@ -221,7 +234,7 @@ def _localize(args: argparse.Namespace) -> int:
         export(Path(args.out_dir), formats, records, posed)
     if args.json_list:
         print(json.dumps(records, indent=2))
-    return 0
+    return 1 if errors else 0  # every photo has its record; the status says some could not be read
 
 
 def build_parser() -> argparse.ArgumentParser:
