@@ -155,3 +155,17 @@ def test_sweep_reruns_only_what_the_override_changes(repo):
     assert "acc_5cm_5deg" in proc.stdout and "ms_per_query" in proc.stdout
     assert _digest(repo / "data/mini/relocalize/poses.txt") == tracked
     assert _status(repo) == set()
+
+
+def test_relocalize_refuses_another_scenes_map(repo, tmp_path):
+    """A map copied into another scene's place is refused, naming both scenes; nothing is written."""
+    data = tmp_path / "data"
+    for sub in ("prepared", "map"):
+        shutil.copytree(repo / "data/mini" / sub, data / "other" / sub)
+    proc = subprocess.run([sys.executable, "-m", "stages.relocalize", "scene=mini", "scene.name=other",
+                           f"data_dir={data}", f"results_dir={tmp_path / 'results'}",
+                           f"hydra.run.dir={tmp_path / 'log'}"], cwd=repo, capture_output=True, text=True)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1 and "Traceback" not in out, out
+    assert "is a map of scene 'mini', not of 'other'" in out
+    assert not (data / "other" / "relocalize").exists() and not (tmp_path / "results").exists()

@@ -176,3 +176,11 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
             f = truth[name]
             assert rotation_error_deg(p.R, f.R) < 0.5 and translation_error(p.R, p.t, f.R, f.t) < 0.01, name
             assert p.seconds > 0
+
+
+def test_two_mapping_images_say_why_they_are_not_enough(tmp_path):
+    cam = Camera("PINHOLE", 64, 48, (50, 50, 32, 24))
+    frames = [Frame(f"{i}.png", tmp_path / f"{i}.png", cam, "train", np.eye(3), np.array([0.1 * i, 0, 0]))
+              for i in range(2)]
+    with pytest.raises(SfmError, match=r"at least 3 mapping images, got 2: COLMAP keeps only points seen in 3"):
+        reconstruct(frames, tmp_path, tmp_path, OPTS, has_poses=True)

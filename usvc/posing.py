@@ -19,7 +19,7 @@ import pycolmap
 
 from usvc.errors import SfmError
 from usvc.scene import Camera, Frame, Scene
-from usvc.sfm import SfmOptions, _pipeline_options, extract, match
+from usvc.sfm import MIN_MAPPING_IMAGES, SfmOptions, _pipeline_options, extract, match
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +75,9 @@ def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions) 
     """Posed copy of ``scene`` (images under ``image_dir`` by frame name) and {name: why not posed}."""
     frames = scene.frames
     mapping = [f for f in frames if f.split == "train"]
-    if len(mapping) < 2:
-        raise SfmError(f"scene {scene.name!r}: SfM needs at least 2 mapping photos, got {len(mapping)}")
+    if len(mapping) < MIN_MAPPING_IMAGES:
+        raise SfmError(f"scene {scene.name!r}: SfM needs at least {MIN_MAPPING_IMAGES} mapping photos, got "
+                       f"{len(mapping)}: COLMAP keeps only points seen in 3 or more photos")
     db_path = work_dir / "database.db"
     extract(frames, image_dir, db_path, opts)
     match(frames, db_path, work_dir, opts, has_poses=False)

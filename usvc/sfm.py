@@ -37,6 +37,9 @@ class SfmOptions:
     seed: int
 
 
+MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
+
+
 def _camera_key(frame: Frame) -> tuple:
     c = frame.camera
     return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
@@ -201,8 +204,10 @@ def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int)
 def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
                 has_poses: bool) -> tuple[pycolmap.Reconstruction, dict]:
     """Extract, match and triangulate (or map); returns the model and timing/strategy stats."""
-    if len(frames) < 2:
-        raise SfmError(f"SfM needs at least 2 mapping images, got {len(frames)}")
+    if len(frames) < MIN_MAPPING_IMAGES:
+        raise SfmError(
+            f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}: COLMAP keeps only points "
+            "seen in 3 or more images (tracks of two views are dropped), and a usable map wants dozens")
     db_path = work_dir / "database.db"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
