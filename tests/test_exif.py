@@ -127,3 +127,18 @@ def test_truncated_jpeg_is_one_clear_error_not_grey_pixels(tmp_path: Path) -> No
     progressive = tmp_path / "progressive.jpg"
     Image.open(whole).save(progressive, progressive=True, quality=90)
     assert read_image_bgr(progressive).shape == (120, 160, 3)
+
+
+def test_a_camera_for_the_unturned_size_names_the_exif_orientation(tmp_path: Path) -> None:
+    """A photo stored 64x48 with orientation 6 is a 48x64 image; a 64x48 camera gets a reason."""
+    from usvc.scene import Camera
+    from usvc.undistort import check_image_size
+
+    path = photo(tmp_path / "turned.jpg", 6)
+    image = read_image_bgr(path)
+    assert image.shape[:2] == (W, H)
+    with pytest.raises(SceneError, match=r"image is 48x64 but its camera says 64x48 \(its EXIF orientation 6 turns"):
+        check_image_size(image, Camera("PINHOLE", W, H, (50, 50, 32, 24)), str(path))
+    plain = photo(tmp_path / "plain.jpg")
+    with pytest.raises(SceneError, match=r"camera says 48x64$"):
+        check_image_size(read_image_bgr(plain), Camera("PINHOLE", H, W, (50, 50, 24, 32)), str(plain))

@@ -74,6 +74,15 @@ def _stored_size(img: Image.Image) -> tuple[int, int]:
     return img.size
 
 
+def exif_orientation(path: str | Path) -> int:
+    """The photo's EXIF orientation tag (1-8; 1 when absent or unreadable)."""
+    try:
+        with _open(path) as img:
+            return _orientation(_exif(img))
+    except Exception:  # noqa: BLE001 - a hint for an error message, never an error of its own
+        return 1
+
+
 def oriented_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of the photo with its EXIF orientation applied, from the header only."""
     with _open(path) as img:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pycolmap
@@ -61,7 +63,15 @@ def _maps(src: Camera, dst: Camera) -> tuple[np.ndarray, np.ndarray]:
 def check_image_size(image: np.ndarray, camera: Camera, where: str) -> None:
     h, w = image.shape[:2]
     if (w, h) != (camera.width, camera.height):
-        raise SceneError(f"{where}: image is {w}x{h} but its camera says {camera.width}x{camera.height}")
+        hint = ""
+        if (h, w) == (camera.width, camera.height) and Path(where).is_file():
+            from usvc.exif import exif_orientation
+
+            turn = exif_orientation(where)
+            if turn in (5, 6, 7, 8):
+                hint = (f" (its EXIF orientation {turn} turns it by 90 degrees, as viewers show it; the camera "
+                        f"must describe the turned {w}x{h} image)")
+        raise SceneError(f"{where}: image is {w}x{h} but its camera says {camera.width}x{camera.height}{hint}")
 
 
 def resample(image: np.ndarray, src: Camera, dst: Camera, nearest: bool = False) -> np.ndarray:
