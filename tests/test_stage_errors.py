@@ -81,6 +81,14 @@ def test_non_finite_pose(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 4", "not finite")
 
 
+def test_cropped_images_are_refused(tmp_path, llff):
+    """Images cropped to another aspect than the poses' (h, w): an anisotropic focal, refused."""
+    rng = np.random.default_rng(1)
+    for i in range(9):
+        cv2.imwrite(str(llff / "images" / f"img_{i}.png"), rng.integers(0, 255, (54, 80, 3), dtype=np.uint8))
+    _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 0", "80x54", "1920x1080", "cropped images?")
+
+
 def test_unknown_format(tmp_path, llff):
     proc = subprocess.run(
         [sys.executable, "-m", "stages.prepare", "scene=office", f"scene.path={llff}", "scene.format=nerf",

@@ -47,6 +47,9 @@ def _shared_size(images: list[Path]) -> tuple[int, int]:
     return size
 
 
+MAX_ASPECT_CHANGE = 0.01  # resizing rounds sizes to whole pixels; a crop changes the aspect more
+
+
 def row_to_frame(row: np.ndarray, where: str, image: Path, name: str, split: str, size: tuple[int, int]) -> Frame:
     """One poses_bounds row to a canonical frame: reorder axes, invert, rescale the focal."""
     m = row[:15].reshape(3, 5)
@@ -58,6 +61,12 @@ def row_to_frame(row: np.ndarray, where: str, image: Path, name: str, split: str
     R_c2w = np.stack([R_llff[:, 1], R_llff[:, 0], -R_llff[:, 2]], axis=1)
     R, t = c2w_to_w2c(R_c2w, m[:, 3], where)
     W, H = size
+    stretch = (W / w) / (H / h)
+    if abs(stretch - 1) > MAX_ASPECT_CHANGE:
+        raise SceneError(
+            f"{where}: the images are {W}x{H} but the poses were estimated on {w:g}x{h:g} images, another aspect "
+            f"ratio ({100 * (stretch - 1):+.1f} %): cropped images? LLFF's focal length holds only for the same "
+            "picture scaled, so crop-free images (or poses estimated on these) are needed")
     cam = make_camera(where, "PINHOLE", W, H, (f * W / w, f * H / h, W / 2.0, H / 2.0))
     return make_frame(where, name=name, image_path=image, camera=cam, split=split, R=R, t=t)
 
