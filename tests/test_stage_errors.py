@@ -89,6 +89,13 @@ def test_cropped_images_are_refused(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 0", "80x54", "1920x1080", "cropped images?")
 
 
+def test_every_mapping_image_the_same_photo_is_refused(tmp_path, llff):
+    same = (llff / "images" / "img_0.png").read_bytes()
+    for i in range(1, 9):
+        (llff / "images" / f"img_{i}.png").write_bytes(same)
+    _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "mapping images differ", "pixel-identical copies")
+
+
 def test_unknown_format(tmp_path, llff):
     proc = subprocess.run(
         [sys.executable, "-m", "stages.prepare", "scene=office", f"scene.path={llff}", "scene.format=nerf",

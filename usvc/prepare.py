@@ -7,6 +7,7 @@ only. Poses are unchanged by undistortion, so metrics still score against the im
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import tempfile
 from dataclasses import replace
@@ -21,7 +22,7 @@ from usvc.exif import read_image_bgr
 from usvc.scene import Frame, Scene
 from usvc.posing import pose_scene
 from usvc.scene_io import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
-from usvc.sfm import SfmOptions
+from usvc.sfm import MIN_MAPPING_IMAGES, SfmOptions
 from usvc.undistort import undistort
 
 log = logging.getLogger(__name__)
@@ -57,12 +58,29 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov
     return _write_prepared(scene, out_dir, working_width, undistort_fov)
 
 
+def check_distinct_mapping_images(scene: str, contents: dict[str, list[str]]) -> None:
+    """Copies of one photo carry no geometry (SfM would triangulate noise between them): refuse a
+    scene that is mostly copies, warn about a few."""
+    copies = [names for names in contents.values() if len(names) > 1]
+    if not copies:
+        return
+    n_images = sum(len(names) for names in contents.values())
+    example = ", ".join(max(copies, key=len)[:3])
+    if len(contents) < MIN_MAPPING_IMAGES or len(contents) < n_images / 2:
+        raise SceneError(f"scene {scene!r}: only {len(contents)} of {n_images} mapping images differ; the rest are "
+                         f"pixel-identical copies (e.g. {example}): SfM and the map need photos from different "
+                         "viewpoints")
+    log.warning("scene %r: %d mapping images are pixel-identical copies of others (e.g. %s)", scene,
+                sum(len(n) - 1 for n in copies), example)
+
+
 def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str) -> dict:
     """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth)."""
     scene.split("train")
     scene.split("test")
     out_frames: list[Frame] = []
     depths: list[np.ndarray | None] = []
+    contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels
     for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
         image, camera = undistort(read_image_bgr(frame.image_path), frame.camera, undistort_fov,
                                   where=str(frame.image_path))
@@ -83,6 +101,9 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
             depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
         depths.append(depth)
         out_frames.append(replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None))
+        if frame.split == "train":
+            contents.setdefault(hashlib.sha1(image.tobytes()).hexdigest(), []).append(frame.name)
+    check_distinct_mapping_images(scene.name, contents)
     prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
     write_scene_h5(out_dir / SCENE_FILE, prepared, depths, source_cameras=[f.camera for f in scene.frames])
     n_train = len(prepared.split("train"))
