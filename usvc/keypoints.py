@@ -17,6 +17,7 @@ import numpy as np
 
 from usvc.errors import KeypointError
 from usvc.tracks import Tracks, write_images_group
+from usvc.h5io import write_h5
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,7 @@ def write_keypoints(path: Path, kp: Keypoints, tracks: Tracks) -> None:
     kept = np.zeros(len(tracks.xyz), dtype=bool)
     kept[kp.index] = True
     obs_rows = np.flatnonzero(np.repeat(kept, tracks.track_length))
-    with h5py.File(path, "w") as h5:
+    with write_h5(path) as h5:
         write_images_group(h5, tracks)
         k = h5.create_group("keypoints")
         k["id"] = tracks.point_id[kp.index]

@@ -16,6 +16,7 @@ from usvc.evaluation.evaluate import refinement_summary
 from usvc.evaluation.pose_errors import write_poses_txt
 from usvc.relocalizer import PoseEstimate, Relocalizer
 from usvc.scene import Frame
+from usvc.h5io import write_h5
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
     write_poses_txt(out_dir / "poses.txt", [frames[i].name for i in ok],
                     np.array([results[i].R for i in ok]).reshape(-1, 3, 3),
                     np.array([results[i].t for i in ok]).reshape(-1, 3))
-    with h5py.File(out_dir / "queries.h5", "w") as h5:
+    with write_h5(out_dir / "queries.h5") as h5:
         h5.create_dataset("name", data=np.array([f.name for f in frames], dtype=object), dtype=h5py.string_dtype())
         h5["success"] = np.array([r.success for r in results])
         h5["inliers"] = np.array([r.inliers for r in results], dtype=np.int64)

@@ -12,7 +12,7 @@ import numpy as np
 
 from usvc.errors import SceneError
 from usvc.scene import CAMERA_MODELS, Camera, Frame, Scene
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5, write_h5
 
 SCENE_FILE = "scene.h5"
 IMAGE_DIR = "images"
@@ -46,7 +46,7 @@ def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | N
     models, sizes, params = _camera_arrays([f.camera for f in scene.frames])
     R = np.stack([f.R if f.has_pose else np.full((3, 3), np.nan) for f in scene.frames])
     t = np.stack([f.t if f.has_pose else np.full(3, np.nan) for f in scene.frames])
-    with h5py.File(path, "w") as h5:
+    with write_h5(path) as h5:
         h5.attrs["name"] = scene.name
         h5.attrs["metric_scale"] = np.nan if scene.metric_scale is None else scene.metric_scale
         h5.attrs["has_poses"] = scene.has_poses

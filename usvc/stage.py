@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import logging
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -46,6 +48,8 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
 
     @functools.wraps(fn)
     def wrapper(cfg: DictConfig) -> None:
+        # A file-size limit then fails the write (EFBIG, below) instead of killing the process.
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         try:
             validate(cfg)
             quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG))
@@ -53,6 +57,13 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
             fn(cfg)
         except UsvcError as err:
             log.error("%s failed: %s", Path(sys.argv[0]).stem, err)
+            sys.exit(1)
+        except OSError as err:
+            if err.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+                raise
+            where = f" writing {err.filename}" if err.filename else ""
+            log.error("%s failed: %s%s (disk full or a file-size limit), nothing written",
+                      Path(sys.argv[0]).stem, err.strerror, where)
             sys.exit(1)
         except KeyboardInterrupt:  # artifacts are written atomically, so nothing half-written stays
             log.error("%s interrupted, nothing written", Path(sys.argv[0]).stem)

@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from usvc.errors import SfmError
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5, write_h5
 
 
 @dataclass
@@ -99,7 +99,7 @@ def write_images_group(h5: h5py.File, tracks: Tracks) -> None:
 
 
 def write_tracks(path: Path, tracks: Tracks) -> None:
-    with h5py.File(path, "w") as h5:
+    with write_h5(path) as h5:
         write_images_group(h5, tracks)
         pts = h5.create_group("points")
         pts["id"], pts["xyz"], pts["rgb"], pts["error"] = tracks.point_id, tracks.xyz, tracks.rgb, tracks.error

@@ -20,7 +20,7 @@ from usvc.errors import UsvcError
 from usvc.evaluation.pose_errors import rotation_error_deg, summarize, translation_error
 from usvc.geometry import camera_centers
 from usvc.scene import Scene
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5
 
 PER_QUERY_COLUMNS: tuple[str, ...] = (
     "name", "rot_deg", "trans", "trans_cm", "failed", "inliers",

@@ -12,13 +12,13 @@ import numpy as np
 from usvc.errors import UsvcError
 from usvc.scene import Camera, Frame
 from usvc.splat.novel_views import NovelView
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5, write_h5
 
 
 def write_rendered_views(out_dir: Path, views: list[NovelView]) -> None:
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     offsets = np.cumsum([0] + [len(v.keypoint_ids) for v in views])
-    with h5py.File(out_dir / "render.h5", "w") as h5:
+    with write_h5(out_dir / "render.h5") as h5:
         h5["R"] = np.stack([v.R for v in views])
         h5["t"] = np.stack([v.t for v in views])
         h5["K"] = np.stack([v.K for v in views])

@@ -24,7 +24,7 @@ from usvc.model.preprocess import luma01, normalise
 from usvc.scene import Frame
 from usvc.training.augment import augment
 from usvc.training.keypoint_obs import SceneKeypoints, sample_features, view_observations
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5, write_h5
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +204,7 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
 
 def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) -> None:
     """Write the buffer; `attrs` (e.g. the working short side) travel with it to the map."""
-    with h5py.File(path, "w") as h5:
+    with write_h5(path) as h5:
         h5.attrs.update(attrs)
         h5.create_dataset("features", data=buf.features, chunks=(min(len(buf.features), 4096), buf.features.shape[1]))
         h5["pixels"], h5["view_index"] = buf.pixels, buf.view_index

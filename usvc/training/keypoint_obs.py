@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from usvc.errors import KeypointError
 from usvc.model.encoder import OUTPUT_STRIDE
 from usvc.training.augment import AugmentedView
-from usvc.h5read import read_h5
+from usvc.h5io import read_h5
 
 
 @dataclass
