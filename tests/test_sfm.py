@@ -184,3 +184,25 @@ def test_two_mapping_images_say_why_they_are_not_enough(tmp_path):
               for i in range(2)]
     with pytest.raises(SfmError, match=r"at least 3 mapping images, got 2: COLMAP keeps only points seen in 3"):
         reconstruct(frames, tmp_path, tmp_path, OPTS, has_poses=True)
+
+
+@pytest.mark.slow
+def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
+    """Right poses agree with the images' matches; the same poses shuffled among the images do not."""
+    from dataclasses import replace
+
+    from usvc.pose_check import pose_agreement, warn_if_poses_disagree
+    from usvc.sfm import extract, match
+
+    frames = read_scene_h5(small_mini).split("train")
+    db = tmp_path / "database.db"
+    extract(frames, small_mini / IMAGE_DIR, db, OPTS)
+    match(frames, db, tmp_path, OPTS, has_poses=True)
+    right = pose_agreement(db, frames)
+    assert right["pairs"] > 50 and right["median_pair_epipolar_px"] < 1.0
+    assert not warn_if_poses_disagree(right)
+    perm = np.random.default_rng(0).permutation(len(frames))
+    shuffled = [replace(f, R=frames[k].R, t=frames[k].t) for f, k in zip(frames, perm)]
+    wrong = pose_agreement(db, shuffled)
+    assert wrong["median_pair_epipolar_px"] > 10.0 and wrong["pairs_disagreeing"] > wrong["pairs"] / 2
+    assert warn_if_poses_disagree(wrong) and "another order than the images" in caplog.text

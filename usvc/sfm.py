@@ -16,6 +16,7 @@ import numpy as np
 import pycolmap
 
 from usvc.errors import SfmError
+from usvc.pose_check import pose_agreement, warn_if_poses_disagree
 from usvc.scene import Frame
 
 log = logging.getLogger(__name__)
@@ -222,6 +223,10 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
         mode = "triangulate" if has_poses else "incremental"
     if mode == "triangulate" and not has_poses:
         raise SfmError("sfm.reconstruction=triangulate needs a scene with poses")
+    agreement = {}
+    if has_poses:
+        agreement = pose_agreement(db_path, frames)
+        warn_if_poses_disagree(agreement)
     model_dir = work_dir / "colmap_work"
     model_dir.mkdir(exist_ok=True)
     po = _pipeline_options(opts)
@@ -243,4 +248,5 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
             f"SfM triangulated only {rec.num_points3D()} points from {len(frames)} images "
             f"(sfm.min_points={opts.min_points}): too few matches, a degenerate scene or wrong poses"
         )
-    return rec, {"matching": strategy, "reconstruction": mode, **timings}
+    return rec, {"matching": strategy, "reconstruction": mode, **timings,
+                 **{f"pose_check_{k}": v for k, v in agreement.items() if k != "worst_images"}}
