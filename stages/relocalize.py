@@ -8,6 +8,7 @@ from omegaconf import DictConfig
 
 from usvc.atomic import atomic_dir
 from usvc.config import register_configs
+from usvc.errors import UsvcError
 from usvc.relocalize_scene import relocalize_frames, write_results
 from usvc.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.scene_io import read_scene_h5
@@ -25,6 +26,10 @@ def main(cfg: DictConfig) -> None:
     frames = read_scene_h5(paths.prepared).split("test")
     options = RelocalizeOptions(**cfg.relocalize, seed=cfg.seed)
     relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options)
+    mapped = relocalizer.metadata.get("scene")
+    if mapped != cfg.scene.name:
+        raise UsvcError(f"{paths.map / 'map.pt'} is a map of scene {mapped!r}, not of {cfg.scene.name!r}: "
+                        "rerun the train stage for this scene")
     results = relocalize_frames(relocalizer, frames)
     out, metrics_path = stage_outputs(cfg, "relocalize")
     with atomic_dir(out) as tmp:
