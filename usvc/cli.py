@@ -311,6 +311,9 @@ def main(argv: list[str] | None = None) -> int:
     except (UsvcError, OSError) as err:  # UsvcError covers ModelError (bad map/weights files)
         print(f"usvc {args.command}: error: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # output files are written atomically, at the end
+        print(f"usvc {args.command}: interrupted, nothing written", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
