@@ -322,3 +322,16 @@ def test_bgr_arrays_are_read_as_bgr(tiny_map: tuple[Path, Path], monkeypatch: py
     reloc.localize(np.ascontiguousarray(rgb[..., ::-1]), WORK_CAMERA)  # the common mistake
     np.testing.assert_allclose(seen[0], seen[1], atol=1e-6)  # the weighted sum's order differs
     assert np.abs(seen[0] - seen[2]).max() > 0.05
+
+
+def test_a_map_finds_the_shipped_encoder_it_names(tmp_path: Path) -> None:
+    """A model=small_real map needs no --encoder-weights: it records which shipped file it used."""
+    from usvc.model.encoder import encoder_fingerprint, load_encoder_weights
+    from usvc.weights import WEIGHTS_DIR
+
+    encoder = load_encoder_weights(WEIGHTS_DIR / "encoder_small_real.pt", width=0.5)
+    map_path = tmp_path / "real.map.pt"
+    save_map(map_path, Regressor(encoder, Head(in_channels=encoder.out_channels, width=64)),
+             {"short_side": SHORT_SIDE, "encoder_file": "encoder_small_real.pt"})
+    reloc = Relocalizer(map_path)
+    assert encoder_fingerprint(reloc.regressor.encoder) == encoder_fingerprint(encoder)

@@ -28,7 +28,7 @@ from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 from usvc.refinement import RefineOptions, refine_pose
 from usvc.scene import Camera
 from usvc.undistort import undistort
-from usvc.weights import load_configured_encoder
+from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
 log = logging.getLogger(__name__)
 
@@ -206,6 +206,10 @@ class Relocalizer:
         header = read_map_header(map_path)
         width = float(header["encoder"].get("width", 1.0))
         kind = str(header["encoder"].get("kind", "ace"))
+        if encoder_weights is None:  # the shipped file the map was trained with (e.g. model=small_real)
+            recorded = header["metadata"].get("encoder_file")
+            if isinstance(recorded, str) and kind == "ace" and (WEIGHTS_DIR / Path(recorded).name).is_file():
+                encoder_weights = WEIGHTS_DIR / Path(recorded).name
         encoder, _ = load_configured_encoder(width, encoder_weights, kind)
         self.regressor: Regressor
         self.regressor, self.metadata = load_map(map_path, encoder)
