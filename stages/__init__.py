@@ -1,0 +1,15 @@
+"""One module per pipeline stage (`python -m stages.<name> scene=<scene> [overrides]`).
+
+Importing the package sets the BLAS/OpenMP thread variables from `threads=` on the command line
+(default auto) before any stage imports numpy or torch; `stage_main` then sets torch's and
+OpenCV's pools from the composed config.
+"""
+
+import sys
+
+from usvc.threads import export_to_env, resolve, setting_from_argv
+
+try:
+    export_to_env(resolve(setting_from_argv(sys.argv[1:])))
+except ValueError:
+    pass  # a bad value is reported by the config validation, naming the key

@@ -12,6 +12,7 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from usvc import threads
 from usvc.errors import SceneError, UsvcError
 from usvc.logs import quiet_third_party
 
@@ -189,6 +190,7 @@ def _localize(args: argparse.Namespace) -> int:
     from usvc.exif import read_image_bgr
     from usvc.relocalizer import Relocalizer, RelocalizeOptions
 
+    threads.apply(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine)
@@ -240,6 +242,9 @@ def _localize(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usvc", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at DEBUG level")
+    parser.add_argument("--threads", default="auto",
+                        help="torch/OpenCV/BLAS threads: auto (the cores divided by the usvc jobs running side "
+                             "by side) or a number")
     parser.add_argument("--version", action="version", version=f"usvc {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -307,6 +312,12 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     quiet_third_party(verbose=args.verbose)
     try:
+        try:
+            n = threads.resolve(args.threads)
+        except ValueError as err:
+            raise UsvcError(f"--threads: {err}") from None
+        threads.export_to_env(n)  # torch and OpenCV pools are set where a command loads them
+        args.threads = n
         return int(args.run(args))
     except (UsvcError, OSError) as err:  # UsvcError covers ModelError (bad map/weights files)
         print(f"usvc {args.command}: error: {err}", file=sys.stderr)

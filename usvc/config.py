@@ -42,7 +42,7 @@ class SfmConfig:
     pose_pairs_per_image: int = 20
     reconstruction: str = "auto"  # auto | triangulate | incremental
     min_points: int = 100
-    num_threads: int = -1
+    num_threads: int = -1  # -1 = the top-level threads setting
     seed: int = 0  # COLMAP's RANSAC seed; apart from the global seed so mapping seeds reuse the SfM
 
 
@@ -170,6 +170,7 @@ class RenderConfig:
 @dataclass
 class Config:
     seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
+    threads: str = "auto"  # torch/OpenCV/COLMAP/BLAS threads: auto (cores / jobs side by side) or a number
     method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
     data_dir: str = "data"
     results_dir: str = "results"
@@ -285,6 +286,12 @@ def validate(cfg: Any) -> None:
                 "render.max_translation_rel", "render.min_alpha"):
         if _get(cfg, key) < 0:
             raise ConfigError(f"config key {key}={_get(cfg, key)!r} must be >= 0")
+    try:
+        from usvc.threads import resolve
+
+        resolve(cfg.threads)
+    except ValueError as err:
+        raise ConfigError(f"config key {err}") from None
     if cfg.scene.metric_scale is not None and not cfg.scene.metric_scale > 0:
         raise ConfigError(f"config key scene.metric_scale={cfg.scene.metric_scale!r} must be > 0 or null")
 

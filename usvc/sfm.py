@@ -41,6 +41,13 @@ class SfmOptions:
 MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
 
 
+def colmap_threads(opts: SfmOptions) -> int:
+    """sfm.num_threads when set (> 0), else the process's `threads` setting (COLMAP's -1: all cores)."""
+    from usvc import threads
+
+    return opts.num_threads if opts.num_threads > 0 else (threads.applied or -1)
+
+
 def _camera_key(frame: Frame) -> tuple:
     c = frame.camera
     return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
@@ -90,7 +97,7 @@ def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOption
         groups[camera_ids[_camera_key(f)]].append(f.name)
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = opts.max_num_features
-    eo.num_threads = opts.num_threads
+    eo.num_threads = colmap_threads(opts)
     eo.use_gpu = False
     for cid, names in groups.items():
         ro = pycolmap.ImageReaderOptions()
@@ -121,7 +128,7 @@ def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
 def matching_kwargs(opts: SfmOptions) -> dict:
     """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU)."""
     mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = opts.num_threads
+    mo.num_threads = colmap_threads(opts)
     mo.use_gpu = False
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run

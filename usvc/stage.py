@@ -17,6 +17,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from usvc.atomic import atomic_file
+from usvc import threads
 from usvc.config import validate
 from usvc.logs import quiet_third_party
 from usvc.errors import UsvcError
@@ -52,6 +53,7 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         try:
             validate(cfg)
+            log.debug("threads: %d", threads.apply(threads.resolve(cfg.threads)))
             quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG))
             log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
             fn(cfg)

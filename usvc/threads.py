@@ -1,0 +1,124 @@
+"""How many threads a stage uses: one setting (`threads`) for torch, OpenCV, COLMAP and BLAS.
+
+`threads: auto` gives each job an equal share of the cores this process may use (its CPU
+affinity, capped by a cgroup CPU quota), counting the jobs that run side by side: usvc stages
+and `usvc` commands (as DVC queue workers and Hydra's parallel launchers start them) and test
+runners, never the current process's own ancestors. Threads that outnumber the cores fight:
+two default-threaded torch processes on 2 cores ran about 20x slower each, not 2x.
+
+The share is decided once, when a job starts; a job that starts later sees the earlier ones.
+A number (`threads=1`) is used as given. Importing this module loads nothing heavy.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+_JOB_MARKERS = ("-m stages.", "/usvc ", "-m usvc.cli", "pytest")
+
+
+def cores_available() -> int:
+    """CPUs this process may run on: its affinity mask, capped by a cgroup v2/v1 CPU quota."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    return max(1, min(cores, quota) if quota else cores)
+
+
+def _cgroup_quota() -> int | None:
+    try:
+        text = Path("/sys/fs/cgroup/cpu.max").read_text().split()
+        if text and text[0] != "max":
+            return math.ceil(int(text[0]) / int(text[1]))
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        quota = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us").read_text())
+        period = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us").read_text())
+        if quota > 0 and period > 0:
+            return math.ceil(quota / period)
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _ancestors(pid: int) -> set[int]:
+    seen: set[int] = set()
+    while pid > 1 and pid not in seen:
+        seen.add(pid)
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+            pid = int(stat.rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            break
+    return seen
+
+
+def other_jobs() -> set[int]:
+    """PIDs of the other usvc stages, `usvc` commands and test runs alive now (Linux /proc; elsewhere
+    none). The current process's ancestors (a pytest or DVC that started it) are not counted."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return set()
+    mine = _ancestors(os.getpid())
+    found: set[int] = set()
+    for entry in proc.iterdir():
+        if not entry.name.isdigit() or int(entry.name) in mine:
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "python" in cmdline and any(marker in cmdline + " " for marker in _JOB_MARKERS):
+            found.add(int(entry.name))
+    return found
+
+
+def jobs_side_by_side() -> int:
+    """This job plus the others alive now (see `other_jobs`)."""
+    return 1 + len(other_jobs())
+
+
+def resolve(setting: str | int) -> int:
+    """`auto` -> cores / jobs side by side (at least 1); a positive number -> itself."""
+    text = str(setting).strip().lower()
+    if text == "auto":
+        return max(1, cores_available() // jobs_side_by_side())
+    if text.isdigit() and int(text) > 0:
+        return int(text)
+    raise ValueError(f"threads={setting!r} must be 'auto' or a positive number")
+
+
+def setting_from_argv(argv: list[str], default: str = "auto") -> str:
+    """The `threads=` override of a Hydra command line, before Hydra has composed anything."""
+    for arg in argv:
+        if arg.lstrip("+").startswith("threads="):
+            return arg.split("=", 1)[1]
+    return default
+
+
+def export_to_env(n: int) -> None:
+    """For libraries that read their thread count when they load (OpenMP, MKL, OpenBLAS) and for
+    child processes; a value the user exported is kept."""
+    for var in ENV_VARS:
+        os.environ.setdefault(var, str(n))
+
+
+applied: int | None = None  # what `apply` set in this process (COLMAP's options read it)
+
+
+def apply(n: int) -> int:
+    """Set torch's and OpenCV's thread pools to `n` (COLMAP takes it through its options)."""
+    import cv2
+    import torch
+
+    global applied
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    applied = n
+    return n
