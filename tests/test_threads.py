@@ -25,6 +25,13 @@ def test_auto_divides_the_cores_by_the_jobs(monkeypatch):
         assert threads.resolve("auto") == expected
 
 
+def test_an_exported_omp_num_threads_caps_auto(monkeypatch):
+    monkeypatch.setattr(threads, "cores_available", lambda: 8)
+    monkeypatch.setattr(threads, "jobs_side_by_side", lambda: 1)
+    monkeypatch.setattr(threads, "_USER_OMP", "3")
+    assert threads.resolve("auto") == 3 and threads.resolve("6") == 6
+
+
 def test_a_stage_running_beside_this_one_is_counted():
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "-m", "stages.train"])
     try:

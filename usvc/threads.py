@@ -7,7 +7,8 @@ runners, never the current process's own ancestors. Threads that outnumber the c
 two default-threaded torch processes on 2 cores ran about 20x slower each, not 2x.
 
 The share is decided once, when a job starts; a job that starts later sees the earlier ones.
-A number (`threads=1`) is used as given. Importing this module loads nothing heavy.
+A number (`threads=1`) is used as given; with `auto`, an OMP_NUM_THREADS the user exported is
+a ceiling. Importing this module loads nothing heavy.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import os
 from pathlib import Path
 
 ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# What the user exported before usvc set anything: with `auto`, OMP_NUM_THREADS stays a ceiling.
+_USER_OMP = os.environ.get("OMP_NUM_THREADS", "")
 _JOB_MARKERS = ("-m stages.", "/usvc ", "-m usvc.cli", "pytest")
 
 
@@ -85,10 +88,12 @@ def jobs_side_by_side() -> int:
 
 
 def resolve(setting: str | int) -> int:
-    """`auto` -> cores / jobs side by side (at least 1); a positive number -> itself."""
+    """`auto` -> cores / jobs side by side (at least 1, at most the user's OMP_NUM_THREADS);
+    a positive number -> itself."""
     text = str(setting).strip().lower()
     if text == "auto":
-        return max(1, cores_available() // jobs_side_by_side())
+        n = max(1, cores_available() // jobs_side_by_side())
+        return min(n, int(_USER_OMP)) if _USER_OMP.isdigit() and int(_USER_OMP) > 0 else n
     if text.isdigit() and int(text) > 0:
         return int(text)
     raise ValueError(f"threads={setting!r} must be 'auto' or a positive number")
