@@ -20,6 +20,7 @@ def test_numbers_are_used_as_given_and_bad_values_refused():
 
 def test_auto_divides_the_cores_by_the_jobs(monkeypatch):
     monkeypatch.setattr(threads, "cores_available", lambda: 8)
+    monkeypatch.setattr(threads, "_USER_OMP", "")
     for jobs, expected in ((1, 8), (2, 4), (3, 2), (16, 1)):
         monkeypatch.setattr(threads, "jobs_side_by_side", lambda jobs=jobs: jobs)
         assert threads.resolve("auto") == expected
