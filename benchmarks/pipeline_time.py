@@ -2,7 +2,7 @@
 
 Runs `python -m stages.<stage> scene=<scene> [overrides]` for each stage in order, each in its
 own process, and writes `results/<scene>/pipeline_time.json`: seconds and peak resident memory
-per stage, the mapping total (every stage before `relocalize`), and the time per query. Run it
+(as the stage records it) per stage, the mapping total (every stage before `relocalize`), and the time per query. Run it
 on an otherwise idle machine; the numbers are only as clean as the machine is quiet.
 
     python benchmarks/pipeline_time.py --scene office
@@ -41,13 +41,14 @@ def run_stage(stage: str, scene: str, overrides: list[str], env: dict[str, str])
     return {"stage": stage, "seconds": round(seconds, 2)}
 
 
-def peak_rss_mb_of_last_child(before_kb: int) -> float | None:
-    """RUSAGE_CHILDREN's maxrss is the largest over all waited-for children: report it only when
-    it grew with this child (otherwise this stage's peak is not above an earlier one's)."""
-    import resource
-
-    now = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return round(now / 1024, 1) if now > before_kb else None
+def stage_peak_mb(results: Path, stage: str) -> float | None:
+    """The peak resident memory the stage itself recorded in its metrics JSON."""
+    path = results / ("prepared.json" if stage == "prepare" else f"{stage}.json")
+    try:
+        value = json.loads(path.read_text()).get("peak_memory_mb")
+    except (OSError, ValueError):
+        return None
+    return round(value, 1) if isinstance(value, (int, float)) else None
 
 
 def main() -> None:
@@ -59,19 +60,16 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides passed to every stage (after --)")
     args = parser.parse_args()
-    import resource
-
     env = dict(os.environ)
     if args.threads > 0:
         env.update(OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
+    name = next((o.split("=", 1)[1] for o in args.overrides if o.startswith("scene.name=")), args.scene)
     rows = []
     for stage in args.stages:
-        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         row = run_stage(stage, args.scene, args.overrides, env)
-        row["peak_rss_mb"] = peak_rss_mb_of_last_child(before)
+        row["peak_memory_mb"] = stage_peak_mb(ROOT / "results" / name, stage)
         rows.append(row)
-        print(f"{stage:>10}: {row['seconds']:8.1f} s", flush=True)
-    name = next((o.split("=", 1)[1] for o in args.overrides if o.startswith("scene.name=")), args.scene)
+        print(f"{stage:>10}: {row['seconds']:8.1f} s, peak {row['peak_memory_mb']} MB", flush=True)
     mapping = sum(r["seconds"] for r in rows if r["stage"] in MAPPING)
     result = {
         "scene": args.scene,
