@@ -27,7 +27,7 @@ def main(cfg: DictConfig) -> None:
     options = RelocalizeOptions(**cfg.relocalize, seed=cfg.seed)
     relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options)
     mapped = relocalizer.metadata.get("scene")
-    if mapped != cfg.scene.name:
+    if cfg.scene.name != mapped:
         raise UsvcError(f"{paths.map / 'map.pt'} is a map of scene {mapped!r}, not of {cfg.scene.name!r}: "
                         "rerun the train stage for this scene")
     results = relocalize_frames(relocalizer, frames)
