@@ -15,7 +15,8 @@ from usvc.splat.fit import fit_gaussians, load_fit_images, split_holdout
 from usvc.splat.ply_io import write_splat_ply
 from usvc.splat.rasterize import render
 from usvc.splat.stage_fit import fit_options, initial_gaussians, ply_reload_difference
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.stage import (peak_memory_mb, scene_paths, skip_unless_rendered_views, stage_main, stage_outputs,
+                        write_json)
 from usvc.tracks import read_tracks
 
 log = logging.getLogger("usvc")
@@ -25,6 +26,8 @@ register_configs()
 @hydra.main(version_base=None, config_path="../conf", config_name="config")
 @stage_main
 def main(cfg: DictConfig) -> None:
+    if skip_unless_rendered_views(cfg, "gaussians"):
+        return
     paths = scene_paths(cfg)
     gcfg = OmegaConf.to_container(cfg.gaussians)
     opts = fit_options(gcfg)
@@ -46,7 +49,7 @@ def main(cfg: DictConfig) -> None:
         side = np.concatenate([pred, check.rgb.numpy()], axis=1)
         cv2.imwrite(str(tmp / "heldout_render_vs_image.png"), (side[..., ::-1] * 255).round().astype(np.uint8))
         megabytes = (tmp / "splat.ply").stat().st_size / 2**20
-    metrics = {**result.metrics, "device": device, "ply_megabytes": megabytes, "ply_reload_max_abs_diff": reload_diff,
+    metrics = {"computed": True, **result.metrics, "device": device, "ply_megabytes": megabytes, "ply_reload_max_abs_diff": reload_diff,
                "seed": opts.seed, "peak_memory_mb": peak_memory_mb()}
     write_json(metrics_path, metrics)
     log.info("gaussians %s: %d Gaussians, held-out PSNR %.2f dB, SSIM %.3f, fit %.0f s", cfg.scene.name,

@@ -12,7 +12,8 @@ from usvc.scene_io import read_scene_h5
 from usvc.splat.novel_views import NovelViewOptions, render_novel_views
 from usvc.splat.ply_io import read_splat_ply
 from usvc.splat.render_io import write_rendered_views
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.stage import (peak_memory_mb, scene_paths, skip_unless_rendered_views,
+                        stage_main, stage_outputs, write_json)
 from usvc.training.keypoint_obs import read_scene_keypoints
 
 log = logging.getLogger("usvc")
@@ -22,6 +23,8 @@ register_configs()
 @hydra.main(version_base=None, config_path="../conf", config_name="config")
 @stage_main
 def main(cfg: DictConfig) -> None:
+    if skip_unless_rendered_views(cfg, "render"):
+        return
     t0 = time.perf_counter()
     paths = scene_paths(cfg)
     model = read_splat_ply(paths.gaussians / "splat.ply")
@@ -32,7 +35,7 @@ def main(cfg: DictConfig) -> None:
     out, metrics_path = stage_outputs(cfg, "render")
     with atomic_dir(out) as tmp:
         write_rendered_views(tmp, views)
-    stats.update({"seed": opts.seed, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb(),
+    stats.update({"computed": True, "seed": opts.seed, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb(),
                   "width": int(views[0].rgb.shape[1]), "height": int(views[0].rgb.shape[0])})
     write_json(metrics_path, stats)
     log.info("render %s: %d views, %.0f visible keypoints per view, %.1f deg from the source on average, %.0f s",

@@ -34,10 +34,10 @@ def test_plan_follows_dvc_yaml_order_and_outs():
 @pytest.mark.parametrize("overrides, first", [
     (["keypoints.tau=2.0"], "keypoints"),
     (["train.bundle_weight=0.5"], "train"),
-    (["method=single"], "buffer"),  # the method files also set buffer.rendered_views
+    (["method=single"], "gaussians"),  # the method files set buffer.rendered_views, which decides the 3DGS fit
     (["gaussians.iterations=100"], "gaussians"),
     (["render.max_angle_deg=30"], "render"),
-    (["buffer.rendered_views=true"], "buffer"),
+    (["buffer.rendered_views=true"], "gaussians"),
     (["relocalize.refine_delta=0.01"], "relocalize"),
     (["relocalize.max_error_px=5"], "relocalize"),
     (["seed=1"], "buffer"),
@@ -55,8 +55,8 @@ def test_first_affected_stage_on_real_dvc_yaml(overrides, first):
 def test_method_files_are_read_per_key():
     assert stages_reading("train.bundle_weight", PLAN) == ["train"]
     assert stages_reading("relocalize.refine", PLAN) == ["relocalize"]
-    assert stages_reading("method", PLAN) == ["buffer", "train", "relocalize"]
-    assert stages_reading("buffer.rendered_views", PLAN) == ["buffer"]
+    assert stages_reading("method", PLAN) == ["gaussians", "render", "buffer", "train", "relocalize"]
+    assert stages_reading("buffer.rendered_views", PLAN) == ["gaussians", "render", "buffer"]
     assert stages_reading("seed", PLAN) == ["buffer", "train", "relocalize"]
 
 

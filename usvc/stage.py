@@ -16,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.atomic import atomic_file
+from usvc.atomic import atomic_dir, atomic_file
 from usvc import threads
 from usvc.config import validate
 from usvc.logs import quiet_third_party
@@ -91,3 +91,22 @@ def peak_memory_mb() -> float:
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+NOT_COMPUTED = "NOT_COMPUTED.txt"
+
+
+def skip_unless_rendered_views(cfg: DictConfig, stage: str) -> bool:
+    """The 3DGS fit and the novel-view renders feed only `method=multiview_gs`: with
+    `buffer.rendered_views: false` the stage writes an empty artifact saying why, and its metrics
+    say `computed: false`, in milliseconds instead of minutes. Returns True when it skipped."""
+    if cfg.buffer.rendered_views:
+        return False
+    reason = (f"{stage} not computed: buffer.rendered_views is false (method={cfg.method}); "
+              "method=multiview_gs uses it")
+    out, metrics_path = stage_outputs(cfg, stage)
+    with atomic_dir(out) as tmp:
+        (tmp / NOT_COMPUTED).write_text(reason + "\n")
+    write_json(metrics_path, {"computed": False, "reason": reason})
+    log.info("%s", reason)
+    return True
