@@ -57,6 +57,9 @@ def test_method_files_are_read_per_key():
     assert stages_reading("relocalize.refine", PLAN) == ["relocalize"]
     assert stages_reading("method", PLAN) == ["gaussians", "render", "buffer", "train", "relocalize"]
     assert stages_reading("buffer.rendered_views", PLAN) == ["gaussians", "render", "buffer"]
+    assert stages_reading("buffer.size", PLAN) == ["buffer"]  # the others track only rendered_views
+    assert stages_reading("gaussians.tile", PLAN) == ["gaussians", "render"]
+    assert stages_reading("gaussians.iterations", PLAN) == ["gaussians"]
     assert stages_reading("seed", PLAN) == ["buffer", "train", "relocalize"]
 
 

@@ -125,7 +125,12 @@ def _reads(stage: StagePlan, key: str, groups: set[str]) -> bool:
     dotted = "." in key
     for path, keys in stage.params:
         if (dotted or head in groups) and path.startswith(group_dir):
-            return True
+            if keys is None or not dotted:
+                return True
+            # a group file tracked for some keys only (render: gaussians.tile) reads just those
+            if any(_key_overlaps(k, key.split(".", 1)[1]) for k in keys):
+                return True
+            continue
         if head in groups and not dotted:
             continue  # `group=option`: only the group's files say which option a stage composed
         if keys is None:
