@@ -96,3 +96,40 @@ def test_sampler_takes_whole_groups_capped_and_skips_single_view_groups():
     assert seen == {0, 1, 2, 3, 4, 7, 8, 9}  # every observation of a capped group gets its turn
     with pytest.raises(ValueError, match="sorted"):
         GroupSampler(kp_id[::-1], kp_view, 2, 4, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("form", ["tanh", "squared"])
+def test_gradient_is_the_same_bits_every_time(form, monkeypatch):
+    """Every observation appears in many pairs; its gradient must be summed in a fixed order. With
+    `pred[a]` (advanced indexing) two CPU threads added repeated rows in timing order, and two
+    2-thread training runs diverged. The pairs are shuffled here (same pairs, any order) so that
+    such a race shows on every run instead of now and then."""
+    import usvc.training.bundle_loss as bl
+
+    real_pairs = bl.group_pairs
+
+    def shuffled_pairs(sizes):
+        a, b = real_pairs(sizes)
+        order = torch.randperm(len(a), generator=torch.Generator().manual_seed(1))
+        return a[order], b[order]
+
+    monkeypatch.setattr(bl, "group_pairs", shuffled_pairs)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        g = torch.Generator().manual_seed(0)
+        sizes = torch.full((60,), 40)
+        n = int(sizes.sum())
+        R, t = _views(n)
+        pred = (torch.randn(n, 3, generator=g) * 0.3).requires_grad_(True)
+        uv = torch.rand(n, 2, generator=g) * 200 + 20
+        args = (sizes, uv, R, t, K.expand(n, 3, 3), torch.linalg.inv(K).expand(n, 3, 3), 50.0)
+        grads = []
+        for _ in range(20):
+            pred.grad = None
+            loss, _ = bl.bundle_loss(pred, *args, form=form)
+            loss.backward()
+            grads.append(pred.grad.clone())
+        assert all(torch.equal(grads[0], other) for other in grads[1:])
+    finally:
+        torch.set_num_threads(previous)

@@ -57,7 +57,11 @@ def bundle_loss(pred: torch.Tensor, group_sizes: torch.Tensor, pixels: torch.Ten
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
     a, b = group_pairs(group_sizes.cpu())
     a, b = a.to(pred.device), b.to(pred.device)
+    # index_select, not pred[a]: every observation appears in many pairs, and on CPU the gradient
+    # of advanced indexing adds repeated rows in thread-timing order (different bits every run);
+    # index_select's gradient adds them in index order.
+    pred_a = torch.index_select(pred, 0, a)
     if form == "squared":
-        return _squared(pred[a], pixels[b], R[b], t[b], K[b], K_inv[b], depth_min, depth_max, invalid_depth)
-    return reprojection_loss(pred[a], pixels[b], R[b], t[b], K[b], K_inv[b], threshold, depth_min=depth_min,
+        return _squared(pred_a, pixels[b], R[b], t[b], K[b], K_inv[b], depth_min, depth_max, invalid_depth)
+    return reprojection_loss(pred_a, pixels[b], R[b], t[b], K[b], K_inv[b], threshold, depth_min=depth_min,
                              depth_max=depth_max, max_reproj=max_reproj, invalid_depth=invalid_depth)
