@@ -57,8 +57,8 @@ class RelocalizeOptions:
 
     def __post_init__(self) -> None:
         """Refuse bad values as given (before any rescaling), naming the option."""
-        if self.backend not in ("opencv", "pycolmap"):
-            raise UsvcError(f"relocalize option backend={self.backend!r} is not one of ['opencv', 'pycolmap']")
+        if self.backend not in BACKENDS:
+            raise UsvcError(f"relocalize option backend={self.backend!r} is not one of {list(BACKENDS)}")
         for name in ("max_error_px", "reference_short_side", "min_inliers", "refine_radius_px",
                      "refine_max_iterations", "refine_delta", "refine_min_correspondences"):
             value = getattr(self, name)
@@ -201,8 +201,6 @@ class Relocalizer:
             raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
         device = _check_device(device)
         self.options = options or RelocalizeOptions()
-        if self.options.backend not in BACKENDS:
-            raise UsvcError(f"unknown PnP backend {self.options.backend!r}; known: {list(BACKENDS)}")
         header = read_map_header(map_path)
         width = float(header["encoder"].get("width", 1.0))
         kind = str(header["encoder"].get("kind", "ace"))

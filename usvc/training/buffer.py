@@ -251,10 +251,7 @@ def read_buffer_image_names(path: Path) -> list[str]:
 
 
 def read_buffer(path: Path) -> TrainingBuffer:
-    path = Path(path)
-    if not path.is_file():
-        raise UsvcError(f"training buffer not found: {path}")
-    with read_h5(path, "training buffer") as h5:
+    with read_h5(path, "training buffer") as h5:  # names a missing or damaged file
         buf = TrainingBuffer(
             features=h5["features"][()], pixels=h5["pixels"][()], view_index=h5["view_index"][()],
             view_image=h5["views/image"][()], view_R=h5["views/R_world_to_cam"][()],
