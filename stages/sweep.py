@@ -70,7 +70,7 @@ def ensure_upstream(upstream: tuple[StagePlan, ...], scene: str, source: Path, j
         repro_log = job / "dvc_repro.log"
         t0 = time.perf_counter()
         with repro_log.open("w") as fh:
-            proc = subprocess.run([sys.executable, "-m", "dvc", "repro", *targets], cwd=ROOT,
+            proc = subprocess.run([sys.executable, "-m", "dvc", "--wait-for-lock", "repro", *targets], cwd=ROOT,
                                   stdout=fh, stderr=subprocess.STDOUT)
         if proc.returncode != 0:
             raise UsvcError(f"`dvc repro {' '.join(targets)}` failed (exit {proc.returncode}); "

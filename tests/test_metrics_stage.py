@@ -413,6 +413,21 @@ def test_stage_multirun_leaves_the_tracked_results_alone(inputs):
         assert (job / "plots" / "trajectory.png").is_file()
 
 
+def test_multirun_through_submitits_local_executor(inputs):
+    """The cluster path (hydra/launcher=submitit_slurm) with submitit's local executor: every job is
+    submitted, runs in its own process, and writes its own directory."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    proc = _run_stage(inputs, "seed=0,1", "hydra.sweep.subdir=${hydra.job.num}", "hydra/launcher=submitit_local",
+                      f"hydra.launcher.submitit_folder={inputs / 'submitit'}", "hydra.launcher.timeout_min=10",
+                      flags=("--multirun",))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert not (inputs / "results").exists()
+    for job in ("0", "1"):
+        assert json.loads((inputs / "sweep" / job / "metrics.json").read_text())["n_queries"] == N_QUERIES
+    logs = sorted((inputs / "submitit").glob("*_log.out"))
+    assert len(logs) == 2, logs  # one submitit job each
+
+
 def test_stage_without_poses_fails_in_one_line(inputs):
     (inputs / "data/mini/relocalize/poses.txt").unlink()
     proc = _run_stage(inputs)

@@ -157,6 +157,22 @@ def test_sweep_reruns_only_what_the_override_changes(repo):
     assert _status(repo) == set()
 
 
+def test_sweep_jobs_run_side_by_side_through_submitit(repo):
+    """The cluster path with submitit's local executor: the jobs run at once, each its own process,
+    and their concurrent `dvc repro` of the upstream stages waits for DVC's lock instead of failing."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    _run([sys.executable, "-m", "stages.sweep", "--multirun", "relocalize.max_error_px=6,12",
+          "hydra/launcher=submitit_local", "hydra.launcher.submitit_folder=multirun/submitit",
+          "hydra.launcher.timeout_min=20", "hydra.sweep.dir=multirun/sweep_submitit"], repo)
+    jobs = sorted(p for p in (repo / "multirun/sweep_submitit").iterdir() if p.is_dir())
+    assert [j.name for j in jobs] == ["0_relocalize.max_error_px=6", "1_relocalize.max_error_px=12"]
+    for job in jobs:
+        metrics = json.loads((job / "metrics.json").read_text())
+        assert metrics["first_stage"] == "relocalize" and metrics["n_queries"] == 20
+    assert len(list((repo / "multirun/submitit").glob("*_log.out"))) == 2
+    assert _status(repo) == set()
+
+
 def test_relocalize_refuses_another_scenes_map(repo, tmp_path):
     """A map copied into another scene's place is refused, naming both scenes; nothing is written."""
     data = tmp_path / "data"

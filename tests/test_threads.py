@@ -77,3 +77,43 @@ def test_config_refuses_a_bad_thread_setting():
         cfg = compose("config", overrides=["threads=lots"])
     with pytest.raises(ConfigError, match="threads='lots' must be 'auto' or a positive number"):
         validate(cfg)
+
+
+def test_cpu_lists_parse_as_the_kernel_writes_them():
+    assert threads.parse_cpu_list("0-3,8,10-11\n") == {0, 1, 2, 3, 8, 10, 11}
+    assert threads.parse_cpu_list("5") == {5}
+
+
+@pytest.mark.skipif(len(__import__("os").sched_getaffinity(0)) < 2, reason="needs two CPUs to pin apart")
+def test_a_job_pinned_to_other_cores_is_not_counted():
+    """On a cluster node a scheduler's cpusets keep jobs apart: they must not shrink each other's share."""
+    import os
+
+    cpus = sorted(os.sched_getaffinity(0))
+    first, rest = {cpus[0]}, set(cpus[1:])
+    pinned = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "-m", "stages.train"],
+                              preexec_fn=lambda: os.sched_setaffinity(0, rest))
+    probe = "import os, sys; from usvc import threads; print(int(sys.argv[1]) in threads.other_jobs())"
+    try:
+        time.sleep(0.5)
+        apart = subprocess.run([sys.executable, "-c", probe, str(pinned.pid)], capture_output=True, text=True,
+                               check=True, preexec_fn=lambda: os.sched_setaffinity(0, first))
+        shared = subprocess.run([sys.executable, "-c", probe, str(pinned.pid)], capture_output=True, text=True,
+                                check=True)
+    finally:
+        pinned.kill()
+        pinned.wait()
+    assert apart.stdout.strip() == "False" and shared.stdout.strip() == "True"
+
+
+def test_a_parents_export_is_not_taken_for_a_users_ceiling():
+    """A Hydra/submitit job inherits the thread variables its launcher exported; they must not cap it."""
+    import os
+
+    code = "from usvc import threads; print(repr(threads._USER_OMP))"
+    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS and k != threads.EXPORT_MARK}
+    ours = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          env={**env, "OMP_NUM_THREADS": "2", threads.EXPORT_MARK: "2"})
+    users = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                           env={**env, "OMP_NUM_THREADS": "3", threads.EXPORT_MARK: "2"})
+    assert ours.stdout.strip() == "''" and users.stdout.strip() == "'3'"

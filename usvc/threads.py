@@ -1,9 +1,10 @@
 """How many threads a stage uses: one setting (`threads`) for torch, OpenCV, COLMAP and BLAS.
 
 `threads: auto` gives each job an equal share of the cores this process may use (its CPU
-affinity, capped by a cgroup CPU quota), counting the jobs that run side by side: usvc stages
-and `usvc` commands (as DVC queue workers and Hydra's parallel launchers start them) and test
-runners, never the current process's own ancestors. Threads that outnumber the cores fight:
+affinity, capped by a cgroup CPU quota), counting the jobs that run side by side on those
+cores: usvc stages and `usvc` commands (as DVC queue workers and Hydra's launchers, submitit's
+included, start them) and test runners, never the current process's own ancestors, and never
+jobs pinned to other cores (a cluster scheduler's cpusets already keep those apart). Threads that outnumber the cores fight:
 two default-threaded torch processes on 2 cores ran about 20x slower each, not 2x.
 
 The share is decided once, when a job starts; a job that starts later sees the earlier ones.
@@ -18,9 +19,13 @@ import os
 from pathlib import Path
 
 ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# Set beside the thread variables usvc exports, so that a child process (a Hydra/submitit job, a
+# test's subprocess) tells usvc's own export from a ceiling the user chose.
+EXPORT_MARK = "USVC_EXPORTED_THREADS"
 # What the user exported before usvc set anything: with `auto`, OMP_NUM_THREADS stays a ceiling.
-_USER_OMP = os.environ.get("OMP_NUM_THREADS", "")
-_JOB_MARKERS = ("-m stages.", "/usvc ", "-m usvc.cli", "pytest")
+_USER_OMP = ("" if os.environ.get(EXPORT_MARK) and os.environ.get(EXPORT_MARK) == os.environ.get("OMP_NUM_THREADS")
+             else os.environ.get("OMP_NUM_THREADS", ""))
+_JOB_MARKERS = ("-m stages.", "/usvc ", "-m usvc.cli", "pytest", "-m submitit.core._submit")
 
 
 def cores_available() -> int:
@@ -62,13 +67,35 @@ def _ancestors(pid: int) -> set[int]:
     return seen
 
 
+def parse_cpu_list(text: str) -> set[int]:
+    """'0-3,8,10-11' (the kernel's Cpus_allowed_list) -> {0, 1, 2, 3, 8, 10, 11}."""
+    cpus: set[int] = set()
+    for part in text.strip().split(","):
+        if part:
+            lo, _, hi = part.partition("-")
+            cpus.update(range(int(lo), int(hi or lo) + 1))
+    return cpus
+
+
+def _allowed_cpus(pid: int) -> set[int] | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("Cpus_allowed_list:"):
+                return parse_cpu_list(line.split(":", 1)[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
 def other_jobs() -> set[int]:
-    """PIDs of the other usvc stages, `usvc` commands and test runs alive now (Linux /proc; elsewhere
-    none). The current process's ancestors (a pytest or DVC that started it) are not counted."""
+    """PIDs of the other usvc stages, `usvc` commands and test runs alive now that may run on this
+    process's cores (Linux /proc; elsewhere none). The current process's ancestors (a pytest or
+    DVC that started it) are not counted, nor are jobs whose CPU affinity shares no core with ours."""
     proc = Path("/proc")
     if not proc.is_dir():
         return set()
     mine = _ancestors(os.getpid())
+    my_cpus = _allowed_cpus(os.getpid())
     found: set[int] = set()
     for entry in proc.iterdir():
         if not entry.name.isdigit() or int(entry.name) in mine:
@@ -78,7 +105,9 @@ def other_jobs() -> set[int]:
         except OSError:
             continue
         if "python" in cmdline and any(marker in cmdline + " " for marker in _JOB_MARKERS):
-            found.add(int(entry.name))
+            theirs = _allowed_cpus(int(entry.name)) if my_cpus else None
+            if theirs is None or theirs & my_cpus:
+                found.add(int(entry.name))
     return found
 
 
@@ -109,9 +138,14 @@ def setting_from_argv(argv: list[str], default: str = "auto") -> str:
 
 def export_to_env(n: int) -> None:
     """For libraries that read their thread count when they load (OpenMP, MKL, OpenBLAS) and for
-    child processes; a value the user exported is kept."""
+    child processes. A value the user exported is kept; one a parent usvc process exported (marked
+    by EXPORT_MARK) is replaced by this process's own share."""
+    inherited = os.environ.get(EXPORT_MARK)
     for var in ENV_VARS:
-        os.environ.setdefault(var, str(n))
+        if var not in os.environ or (inherited is not None and os.environ[var] == inherited):
+            os.environ[var] = str(n)
+    if not _USER_OMP:
+        os.environ[EXPORT_MARK] = str(n)
 
 
 applied: int | None = None  # what `apply` set in this process (COLMAP's options read it)
