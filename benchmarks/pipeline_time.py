@@ -56,7 +56,7 @@ def run_stage(stage: str, scene: str, overrides: list[str], env: dict[str, str])
 
 def stage_peak_mb(results: Path, stage: str) -> float | None:
     """The peak resident memory the stage itself recorded in its metrics JSON."""
-    path = results / ("prepared.json" if stage == "prepare" else f"{stage}.json")
+    path = results / ("prepared.timing.json" if stage == "prepare" else f"{stage}.timing.json")
     try:
         value = json.loads(path.read_text()).get("peak_memory_mb")
     except (OSError, ValueError):
@@ -179,7 +179,7 @@ def main() -> None:
         "threads_env": env.get("OMP_NUM_THREADS", "unset"),
         "cpu": platform.processor() or platform.machine(),
     }
-    reloc = ROOT / "results" / name / "relocalize.json"
+    reloc = ROOT / "results" / name / "relocalize.timing.json"
     if "relocalize" in args.stages and reloc.exists():
         stats = json.loads(reloc.read_text())  # the stage's own per-query timing, model loading excluded
         result["ms_per_query"] = round(stats["ms_per_query"], 1)

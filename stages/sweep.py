@@ -12,7 +12,6 @@ metrics.json collects the headline numbers; after --multirun, SweepSummary print
 
 from __future__ import annotations
 
-import json
 import logging
 import subprocess
 import sys
@@ -28,7 +27,7 @@ from omegaconf import DictConfig
 from usvc.config import register_configs
 from usvc.errors import UsvcError
 from usvc.pipeline_plan import StagePlan, first_affected_stage, load_plan, split_plan
-from usvc.stage import job_dir, stage_main, write_json
+from usvc.stage import job_dir, read_metrics, stage_main, write_json
 
 log = logging.getLogger("usvc")
 register_configs()
@@ -125,12 +124,12 @@ def job_metrics(results: Path, rerun: tuple[StagePlan, ...], first: str) -> dict
     out: dict[str, Any] = {}
     final = results / "metrics.json"
     if final.exists():
-        out.update({k: v for k, v in json.loads(final.read_text()).items()
+        out.update({k: v for k, v in read_metrics(final).items()
                     if isinstance(v, (int, float, str)) and k not in NOT_HEADLINE})
     for st in rerun:
         path = results / f"{st.name}.json"
         if st.name in STAGE_METRICS and path.exists():
-            values = json.loads(path.read_text())
+            values = read_metrics(path)
             out.update({k: values[k] for k in STAGE_METRICS[st.name] if k in values})
     out["first_stage"] = first
     return out

@@ -69,6 +69,9 @@ def sweep_table(sweep_dir: Path) -> str:
         listed = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else None
         overrides = " ".join(map(str, listed or []))
         values = json.loads(metrics.read_text())
+        timing = metrics.with_name("metrics.timing.json")  # the jobs' timings (usvc.stage.write_json)
+        if timing.exists():
+            values.update(json.loads(timing.read_text()))
         rows.append({"job": metrics.parent.name.split("_")[0], "overrides": overrides,
                      **{k: v for k, v in values.items() if isinstance(v, (int, float, str))}})
     return format_table(rows)

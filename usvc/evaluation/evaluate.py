@@ -33,27 +33,29 @@ class QueryStats:
     """What the relocalize stage reports for one query besides its pose."""
 
     inliers: int
-    seconds: float  # total time for this query
+    seconds: float | None  # total time for this query (None: not recorded in queries.h5)
     success: bool
 
 
 def read_query_stats(path: Path | str) -> dict[str, QueryStats]:
-    """Read `queries.h5` (datasets name, inliers, seconds, success) into {name: QueryStats}."""
+    """Read `queries.h5` (datasets name, inliers, success; seconds when recorded) into {name: QueryStats}."""
     path = Path(path)
     if not path.is_file():
         raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
     with read_h5(path, "query statistics") as h5:
-        missing = [k for k in ("name", "inliers", "seconds", "success") if k not in h5]
+        missing = [k for k in ("name", "inliers", "success") if k not in h5]
         if missing:
             raise UsvcError(f"{path}: missing dataset(s) {missing}")
         names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
-        inliers, seconds, success = h5["inliers"][()], h5["seconds"][()], h5["success"][()]
+        inliers, success = h5["inliers"][()], h5["success"][()]
+        seconds = h5["seconds"][()] if "seconds" in h5 else [None] * len(names)
     if not (len(names) == len(inliers) == len(seconds) == len(success)):
         raise UsvcError(f"{path}: datasets name/inliers/seconds/success differ in length "
                         f"({len(names)}, {len(inliers)}, {len(seconds)}, {len(success)})")
     if len(set(names)) != len(names):
         raise UsvcError(f"{path}: duplicate query names")
-    return {n: QueryStats(int(i), float(s), bool(ok)) for n, i, s, ok in zip(names, inliers, seconds, success)}
+    return {n: QueryStats(int(i), None if s is None else float(s), bool(ok))
+            for n, i, s, ok in zip(names, inliers, seconds, success)}
 
 
 def _check_names(kind: str, names: Any, queries: set[str], scene: str) -> None:
@@ -95,8 +97,9 @@ def evaluate_poses(
     stats = [query_stats.get(f.name) for f in queries]
     failed = ~has_est | np.array([s is not None and not s.success for s in stats])
 
+    times = [s.seconds for s in query_stats.values()]
     summary = summarize(rot, trans, scene.metric_scale, median_depth, failed,
-                        ms_per_query=1000.0 * float(np.mean([s.seconds for s in query_stats.values()])))
+                        ms_per_query=None if None in times else 1000.0 * float(np.mean(times)))
     summary["median_depth"] = median_depth
     summary["mean_inliers"] = float(np.mean([0 if s is None else s.inliers for s in stats]))
 

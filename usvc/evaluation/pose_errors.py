@@ -71,7 +71,7 @@ def summarize(
     metric_scale: float | None,
     median_depth: float | None,
     failed: np.ndarray | Sequence[bool] | None,
-    ms_per_query: float,
+    ms_per_query: float | None = None,
 ) -> dict[str, float | int | None]:
     """Accuracies and medians over all queries; failures (mask or non-finite errors) are infinitely wrong.
 
@@ -113,7 +113,8 @@ def summarize(
     out["median_trans_rel_cm"] = (None if median_depth is None
                                   else med_trans / median_depth * REFERENCE_MEDIAN_DEPTH_M * 100.0)
     out["median_trans"] = med_trans
-    out["ms_per_query"] = float(ms_per_query)
+    if ms_per_query is not None:
+        out["ms_per_query"] = float(ms_per_query)
     out["n_queries"] = int(n)
     out["n_failed"] = int(bad.sum())
     return out
