@@ -40,7 +40,7 @@ def main(cfg: DictConfig) -> None:
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,
-                "final_loss": summary["final_loss"], "train_seconds": summary["train_seconds"]}
+                "final_loss": summary["final_loss"]}  # no timings: same training, same bytes
     out, metrics_path = stage_outputs(cfg, "train", artifact="map")
     with atomic_dir(out) as tmp:
         # The kept keypoints travel with the map: query-time refinement projects them (paper 3.2.2).
