@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from pathlib import Path
@@ -11,6 +10,8 @@ from typing import Any
 import yaml
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
+
+from usvc.metrics_file import read_metrics
 
 log = logging.getLogger("usvc")
 METRICS_FILE = "metrics.json"
@@ -68,10 +69,7 @@ def sweep_table(sweep_dir: Path) -> str:
         overrides_file = metrics.parent / ".hydra" / "overrides.yaml"
         listed = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else None
         overrides = " ".join(map(str, listed or []))
-        values = json.loads(metrics.read_text())
-        timing = metrics.with_name("metrics.timing.json")  # the jobs' timings (usvc.stage.write_json)
-        if timing.exists():
-            values.update(json.loads(timing.read_text()))
+        values = read_metrics(metrics)
         rows.append({"job": metrics.parent.name.split("_")[0], "overrides": overrides,
                      **{k: v for k, v in values.items() if isinstance(v, (int, float, str))}})
     return format_table(rows)
