@@ -1,0 +1,106 @@
+"""How close head training runs to the CPU's matrix-multiply peak, and what that bounds.
+
+Training is a stream of dense products through the head (forward and backward). This measures
+(1) the single-precision matrix-multiply rate of this CPU at the head's own shapes (a batch of
+samples times a width x width weight), (2) the iterations per second of `train_head` on a scene's
+buffer with the configured options, and (3) the arithmetic each iteration needs (multiply-adds
+of every head layer for every sample, times three for forward and backward). From these it
+writes `results/benchmarks/train_throughput.json`: the achieved rate as a fraction of the peak,
+and the fewest seconds the configured training could take if it ran at the peak.
+
+    python benchmarks/train_throughput.py --scene mini --iterations 300
+
+Run it on an otherwise idle machine, after the pipeline has built the scene's buffer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+
+from usvc.config import compose_for_script  # noqa: E402
+from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.model.head import Head  # noqa: E402
+from usvc.stage import scene_paths  # noqa: E402
+from usvc import threads as thread_policy  # noqa: E402
+from usvc.tracks import read_tracks  # noqa: E402
+from usvc.training.buffer import read_buffer  # noqa: E402
+from usvc.training.train_head import TrainOptions, train_head  # noqa: E402
+
+
+def matmul_gflops(rows: int, width: int, repeats: int = 300) -> float:
+    """Sustained fp32 GFLOP/s of a (rows x width) @ (width x width) product on this CPU."""
+    a, b = torch.randn(rows, width), torch.randn(width, width)
+    for _ in range(20):
+        a @ b
+    start = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2.0 * rows * width * width * repeats / (time.perf_counter() - start) / 1e9
+
+
+def head_macs_per_sample(in_channels: int, width: int, blocks: int) -> int:
+    """Multiply-adds of one sample through the head: every layer's weight count."""
+    head = Head(in_channels=in_channels, width=width, num_blocks=blocks)
+    return sum(p.numel() for name, p in head.named_parameters() if name.endswith("weight"))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="mini")
+    parser.add_argument("--iterations", type=int, default=300, help="iterations to time (not the configured count)")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. model.head_width=192")
+    args = parser.parse_args()
+    cfg = compose_for_script(args.scene, args.overrides)
+    threads = thread_policy.apply(thread_policy.resolve(cfg.threads))
+    paths = scene_paths(cfg)
+    buffer_file = paths.buffer / "buffer.h5"
+    if not buffer_file.is_file():
+        raise SystemExit(f"{buffer_file} is missing: run the pipeline up to the buffer stage first")
+    buf = read_buffer(buffer_file)
+    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    configured = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
+                              seed=cfg.seed)
+    timed = dataclasses.replace(configured, iterations=args.iterations)
+
+    samples = configured.batch_size + (configured.bundle_groups_per_batch * configured.bundle_obs_per_group
+                                       if configured.bundle_weight > 0 else 0)
+    macs = head_macs_per_sample(buf.features.shape[1], configured.head_width, configured.head_blocks)
+    gflop_per_iteration = 3 * 2 * samples * macs / 1e9  # forward, and backward's two products per layer
+    peak = matmul_gflops(samples, configured.head_width)
+
+    start = time.perf_counter()
+    train_head(buf, median_depth, timed)
+    seconds = time.perf_counter() - start
+    per_second = args.iterations / seconds
+    achieved = per_second * gflop_per_iteration
+    result = {
+        "scene": args.scene, "overrides": args.overrides, "threads": threads, "cpu": platform.processor()
+        or platform.machine(), "cpus": len(os.sched_getaffinity(0)), "torch": torch.__version__,
+        "samples_per_iteration": samples, "head_macs_per_sample": macs,
+        "gflop_per_iteration": round(gflop_per_iteration, 2), "timed_iterations": args.iterations,
+        "iterations_per_second": round(per_second, 2), "achieved_gflops": round(achieved, 1),
+        "matmul_peak_gflops": round(peak, 1), "fraction_of_peak": round(achieved / peak, 3),
+        "configured_iterations": configured.iterations,
+        "configured_train_seconds_at_this_rate": round(configured.iterations / per_second, 1),
+        "configured_train_seconds_at_peak": round(configured.iterations * gflop_per_iteration / peak, 1),
+    }
+    out = ROOT / "results" / "benchmarks" / "train_throughput.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
