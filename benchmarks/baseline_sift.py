@@ -2,7 +2,7 @@
 
 Needs the scene's prepare and sfm stages (it reads the prepared pinhole images, the split and the
 median scene depth from them, and uses the same `sfm` options), then localizes every query once per
-RANSAC seed (`usvc/evaluation/baseline_sift.py` says how) and scores the poses exactly as the
+RANSAC seed (`usvc/analysis/baseline_sift.py` says how) and scores the poses exactly as the
 metrics stage does. Writes results/<scene>/baseline.json: per-seed summaries, their mean and
 standard deviation, timings, and the queries it could not localize with the reason.
 
@@ -23,15 +23,15 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from usvc.config import compose_for_script  # noqa: E402
-from usvc.evaluation.baseline_sift import sift_pnp_baseline  # noqa: E402
-from usvc.evaluation.evaluate import QueryStats, evaluate_poses  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.logs import script_logging  # noqa: E402
-from usvc.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
-from usvc.sfm import SfmOptions  # noqa: E402
-from usvc.stage import scene_paths  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
+from usvc.analysis.baseline_sift import sift_pnp_baseline  # noqa: E402
+from usvc.core.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
+from usvc.metrics.evaluate import QueryStats, evaluate_poses  # noqa: E402
+from usvc.pipeline.config import compose_for_script  # noqa: E402
+from usvc.pipeline.logs import script_logging  # noqa: E402
+from usvc.pipeline.stage import scene_paths  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.sfm import SfmOptions  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
 
 
 def mean_std(summaries: list[dict]) -> tuple[dict, dict]:

@@ -29,14 +29,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.evaluation import rotation_error_deg, translation_error  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.exif import read_image_bgr  # noqa: E402
-from usvc.importers import list_images  # noqa: E402
-from usvc.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
-from usvc.scene import Camera  # noqa: E402
-from usvc.scene_io import read_scene_h5  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
+from usvc.core.exif import read_image_bgr  # noqa: E402
+from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
+from usvc.core.scene import Camera  # noqa: E402
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.prepare.importers import list_images  # noqa: E402
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
 
 ROT_DEG, TRANS_FRAC = 5.0, 0.03
 TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera axes after turning the image clockwise

@@ -4,7 +4,7 @@ keypoint 3D error, the encoders' track-retrieval probe, and the accuracy the pip
 Held-out mapping views exist when the buffer was built with `buffer.holdout_every=k` (every k-th
 mapping image withheld from training); the queries are scored too but only as a read-out, never
 for choosing settings. The metrics come from the scene's `metrics.json` and `train.json` (and
-`baseline.json` when benchmarks/baseline_sift.py has run). Method notes: usvc/evaluation/diagnosis.py.
+`baseline.json` when benchmarks/baseline_sift.py has run). Method notes: usvc/analysis/diagnosis.py.
 
 Run: python benchmarks/diagnose_map.py --scene bird [--views 16] [override ...]
 Writes results/<scene name>/diagnosis.json.
@@ -23,20 +23,18 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from usvc.config import compose_for_script  # noqa: E402
-from usvc.evaluation.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.exif import read_image_bgr  # noqa: E402
-from usvc.logs import script_logging  # noqa: E402
+from usvc.analysis.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
+from usvc.buffer.build import read_buffer_attrs, read_buffer_image_names  # noqa: E402
+from usvc.core.exif import read_image_bgr  # noqa: E402
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
 from usvc.model.preprocess import luma01  # noqa: E402
-from usvc.relocalizer import Relocalizer  # noqa: E402
-from usvc.scene_io import read_scene_h5  # noqa: E402
-from usvc.stage import scene_paths  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
-from usvc.training.buffer import read_buffer_attrs, read_buffer_image_names  # noqa: E402
+from usvc.pipeline.config import compose_for_script  # noqa: E402
+from usvc.pipeline.logs import script_logging  # noqa: E402
+from usvc.pipeline.stage import scene_paths  # noqa: E402
+from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
 from usvc.weights import load_configured_encoder  # noqa: E402
-
-
 
 PROBES = {"small": (0.5, None, "ace"), "default": (1.0, None, "ace"), "xfeat": (1.0, None, "xfeat")}
 

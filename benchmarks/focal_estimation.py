@@ -19,11 +19,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.evaluation import rotation_error_deg, summarize, translation_error  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.relocalizer import Relocalizer  # noqa: E402
-from usvc.scene_io import read_scene_h5  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
+from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
 
 
 def main() -> None:

@@ -20,8 +20,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.relocalizer import Relocalizer  # noqa: E402
-from usvc.training.buffer import read_buffer  # noqa: E402
+from usvc.buffer.build import read_buffer  # noqa: E402
+from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
 
 
 @torch.inference_mode()

@@ -20,9 +20,9 @@ from hydra import compose, initialize_config_dir
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.config import register_configs  # noqa: E402
-from usvc.training.buffer import read_buffer  # noqa: E402
-from usvc.training.train_head import TrainOptions, train_head  # noqa: E402
+from usvc.buffer.build import read_buffer  # noqa: E402
+from usvc.pipeline.config import register_configs  # noqa: E402
+from usvc.train.train_head import TrainOptions, train_head  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

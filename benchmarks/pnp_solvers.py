@@ -18,8 +18,10 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.evaluation import BACKENDS, rotation_error_deg, solve_pnp, translation_error  # noqa: E402
-from usvc.scene import Camera  # noqa: E402
+from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
+from usvc.core.scene import Camera  # noqa: E402
+from usvc.relocalize.pnp import BACKENDS, solve_pnp  # noqa: E402
+
 
 def ace_median(values: np.ndarray) -> float:
     """Element ⌊N/2⌋ of the sorted list, the median rule the evaluation uses."""

@@ -28,8 +28,9 @@ sys.path.insert(0, str(ROOT))
 
 from omegaconf import OmegaConf  # noqa: E402
 
-from usvc.errors import UsvcError  # noqa: E402
-from usvc.evaluation import rotation_error_deg, solve_pnp  # noqa: E402
+from usvc.core.errors import UsvcError  # noqa: E402
+from usvc.core.pose_errors import rotation_error_deg  # noqa: E402
+from usvc.core.scene import Camera  # noqa: E402
 from usvc.model.encoder import (  # noqa: E402
     Encoder,
     cell_centers,
@@ -39,7 +40,7 @@ from usvc.model.encoder import (  # noqa: E402
 )
 from usvc.model.head import Head  # noqa: E402
 from usvc.model.preprocess import normalise  # noqa: E402
-from usvc.scene import Camera  # noqa: E402
+from usvc.relocalize.pnp import solve_pnp  # noqa: E402
 from usvc.weights import shipped_encoder_path  # noqa: E402
 
 MODELS = ("default", "small")

@@ -22,11 +22,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.evaluation import read_poses_txt, rotation_error_deg, summarize, translation_error  # noqa: E402
-from usvc.evaluation.alignment import align_and_compare  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
-from usvc.scene_io import read_scene_h5  # noqa: E402
+from usvc.core.pose_errors import (  # noqa: E402
+    read_poses_txt,
+    rotation_error_deg,
+    summarize,
+    translation_error,
+)
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.metrics.alignment import align_and_compare  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
 
 
 def _summary(rot: np.ndarray, centre: np.ndarray, extent: float) -> dict:

@@ -19,8 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from usvc.scene_io import read_scene_h5  # noqa: E402
-from usvc.splat.fit import image_loss, load_fit_images  # noqa: E402
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.gaussians.fit import image_loss, load_fit_images  # noqa: E402
 from usvc.splat.gsplat_backend import gsplat_available, render_gsplat  # noqa: E402
 from usvc.splat.ply_io import read_splat_ply  # noqa: E402
 from usvc.splat.rasterize import _bin_tiles, project, render  # noqa: E402

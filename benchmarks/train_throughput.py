@@ -29,14 +29,14 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from usvc.config import compose_for_script  # noqa: E402
-from usvc.evaluation.median_depth import median_scene_depth  # noqa: E402
+from usvc.buffer.build import read_buffer  # noqa: E402
 from usvc.model.head import Head  # noqa: E402
-from usvc.stage import scene_paths  # noqa: E402
-from usvc import threads as thread_policy  # noqa: E402
-from usvc.tracks import read_tracks  # noqa: E402
-from usvc.training.buffer import read_buffer  # noqa: E402
-from usvc.training.train_head import TrainOptions, train_head  # noqa: E402
+from usvc.pipeline import threads as thread_policy  # noqa: E402
+from usvc.pipeline.config import compose_for_script  # noqa: E402
+from usvc.pipeline.stage import scene_paths  # noqa: E402
+from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
+from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.train.train_head import TrainOptions, train_head  # noqa: E402
 
 
 def matmul_gflops(rows: int, width: int, repeats: int = 300) -> float:

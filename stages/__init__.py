@@ -7,7 +7,7 @@ OpenCV's pools from the composed config.
 
 import sys
 
-from usvc.threads import export_to_env, resolve, setting_from_argv
+from usvc.pipeline.threads import export_to_env, resolve, setting_from_argv
 
 try:
     export_to_env(resolve(setting_from_argv(sys.argv[1:])))

@@ -6,14 +6,26 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.scene_io import read_depth, read_scene_h5
-from usvc.splat.render_io import read_rendered_views
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.training.buffer import BufferOptions, fill_buffer, holdout_split, working_short_side, write_buffer
-from usvc.training.keypoint_obs import read_scene_keypoints
+from usvc.buffer.build import (
+    BufferOptions,
+    fill_buffer,
+    holdout_split,
+    working_short_side,
+    write_buffer,
+)
+from usvc.buffer.keypoint_obs import read_scene_keypoints
+from usvc.core.atomic import atomic_dir
+from usvc.core.scene_io import read_depth, read_scene_h5
 from usvc.model.encoder import encoder_fingerprint
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.render.render_io import read_rendered_views
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")

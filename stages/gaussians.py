@@ -8,16 +8,26 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.scene_io import read_scene_h5
-from usvc.splat.fit import fit_gaussians, load_fit_images, split_holdout
+from usvc.core.atomic import atomic_dir
+from usvc.core.scene_io import read_scene_h5
+from usvc.gaussians.fit import fit_gaussians, load_fit_images, split_holdout
+from usvc.gaussians.stage_fit import (
+    fit_options,
+    initial_gaussians,
+    ply_reload_difference,
+)
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    skip_unless_rendered_views,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.sfm.tracks import read_tracks
 from usvc.splat.ply_io import write_splat_ply
 from usvc.splat.rasterize import render
-from usvc.splat.stage_fit import fit_options, initial_gaussians, ply_reload_difference
-from usvc.stage import (peak_memory_mb, scene_paths, skip_unless_rendered_views, stage_main, stage_outputs,
-                        write_json)
-from usvc.tracks import read_tracks
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -7,11 +7,18 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.config import register_configs
-from usvc.errors import UsvcError
-from usvc.stage import is_multirun, job_dir, peak_memory_mb, scene_paths, stage_main, write_json
-from usvc.synth.params import RoomParams
-from usvc.synth.writer import generate_scene
+from usvc.core.errors import UsvcError
+from usvc.generate.params import RoomParams
+from usvc.generate.writer import generate_scene
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    is_multirun,
+    job_dir,
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    write_json,
+)
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -6,12 +6,23 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.keypoints import KeypointOptions, keypoint_stats, select_keypoints, write_keypoints
-from usvc.ply import write_points_ply
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.tracks import read_tracks
+from usvc.core.atomic import atomic_dir
+from usvc.core.ply import write_points_ply
+from usvc.keypoints.scoring import (
+    KeypointOptions,
+    keypoint_stats,
+    select_keypoints,
+    write_keypoints,
+)
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.sfm.tracks import read_tracks
 
 log = logging.getLogger("usvc")
 register_configs()

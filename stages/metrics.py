@@ -6,21 +6,27 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.evaluation import read_poses_txt
-from usvc.evaluation.evaluate import (
+from usvc.core.atomic import atomic_dir
+from usvc.core.pose_errors import read_poses_txt
+from usvc.core.scene_io import read_scene_h5
+from usvc.metrics.evaluate import (
     PER_QUERY_COLUMNS,
     evaluate_initial_poses,
     evaluate_poses,
     read_query_stats,
     read_refinement_records,
 )
-from usvc.evaluation.median_depth import median_scene_depth
-from usvc.evaluation.plots import write_plots
-from usvc.scene_io import read_scene_h5
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.tracks import read_tracks
+from usvc.metrics.plots import write_plots
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.sfm.median_depth import median_scene_depth
+from usvc.sfm.tracks import read_tracks
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -6,12 +6,12 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.importers import load_scene
-from usvc.prepare import prepare_scene
-from usvc.sfm import SfmOptions
-from usvc.stage import peak_memory_mb, stage_main, stage_outputs, write_json
+from usvc.core.atomic import atomic_dir
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import peak_memory_mb, stage_main, stage_outputs, write_json
+from usvc.prepare.importers import load_scene
+from usvc.prepare.prepare import prepare_scene
+from usvc.sfm.sfm import SfmOptions
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -6,13 +6,19 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.errors import UsvcError
-from usvc.relocalize_scene import relocalize_frames, write_results
-from usvc.relocalizer import RelocalizeOptions, Relocalizer
-from usvc.scene_io import read_scene_h5
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
+from usvc.core.atomic import atomic_dir
+from usvc.core.errors import UsvcError
+from usvc.core.scene_io import read_scene_h5
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.relocalize.relocalize_scene import relocalize_frames, write_results
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
 log = logging.getLogger("usvc")
 register_configs()

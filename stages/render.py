@@ -6,15 +6,21 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.scene_io import read_scene_h5
-from usvc.splat.novel_views import NovelViewOptions, render_novel_views
+from usvc.buffer.keypoint_obs import read_scene_keypoints
+from usvc.core.atomic import atomic_dir
+from usvc.core.scene_io import read_scene_h5
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    skip_unless_rendered_views,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.render.novel_views import NovelViewOptions, render_novel_views
+from usvc.render.render_io import write_rendered_views
 from usvc.splat.ply_io import read_splat_ply
-from usvc.splat.render_io import write_rendered_views
-from usvc.stage import (peak_memory_mb, scene_paths, skip_unless_rendered_views,
-                        stage_main, stage_outputs, write_json)
-from usvc.training.keypoint_obs import read_scene_keypoints
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -8,13 +8,19 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.ply import write_points_ply
-from usvc.scene_io import IMAGE_DIR, read_scene_h5
-from usvc.sfm import SfmOptions, reconstruct
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.tracks import from_reconstruction, sfm_stats, write_tracks
+from usvc.core.atomic import atomic_dir
+from usvc.core.ply import write_points_ply
+from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.sfm.sfm import SfmOptions, reconstruct
+from usvc.sfm.tracks import from_reconstruction, sfm_stats, write_tracks
 
 log = logging.getLogger("usvc")
 register_configs()

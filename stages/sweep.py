@@ -4,7 +4,7 @@
     python -m stages.sweep --multirun relocalize.refine_radius_px=4,8,16
 
 Per job (its Hydra output dir): dvc.yaml says which stage is the first one any of the job's
-overrides changes (usvc.pipeline_plan); the stages before it are reused from data/<scene>/
+overrides changes (usvc.pipeline.plan); the stages before it are reused from data/<scene>/
 (`dvc repro`-ed first when the scene is in params.yaml), linked into <job>/data/<scene>/, and that
 stage and every later one run as subprocesses with data_dir/results_dir inside the job. The job's
 metrics.json collects the headline numbers; after --multirun, SweepSummary prints one row per job.
@@ -24,10 +24,10 @@ import yaml
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from usvc.config import register_configs
-from usvc.errors import UsvcError
-from usvc.pipeline_plan import StagePlan, first_affected_stage, load_plan, split_plan
-from usvc.stage import job_dir, read_metrics, stage_main, write_json
+from usvc.core.errors import UsvcError
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.plan import StagePlan, first_affected_stage, load_plan, split_plan
+from usvc.pipeline.stage import job_dir, read_metrics, stage_main, write_json
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -6,14 +6,20 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.atomic import atomic_dir
-from usvc.config import register_configs
-from usvc.evaluation.median_depth import median_scene_depth
+from usvc.buffer.build import check_buffer_encoder, read_buffer, read_buffer_attrs
+from usvc.core.atomic import atomic_dir
 from usvc.model.head import Regressor, save_map
-from usvc.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs, write_json
-from usvc.tracks import read_tracks
-from usvc.training.buffer import check_buffer_encoder, read_buffer, read_buffer_attrs
-from usvc.training.train_head import TrainOptions, train_head
+from usvc.pipeline.config import register_configs
+from usvc.pipeline.stage import (
+    peak_memory_mb,
+    scene_paths,
+    stage_main,
+    stage_outputs,
+    write_json,
+)
+from usvc.sfm.median_depth import median_scene_depth
+from usvc.sfm.tracks import read_tracks
+from usvc.train.train_head import TrainOptions, train_head
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")

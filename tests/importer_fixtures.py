@@ -14,10 +14,9 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from usvc.errors import SceneError, UsvcError
-from usvc.importers import FORMATS, load_scene
-from usvc.scene import Camera, Frame, check_rotation
-
+from usvc.core.errors import SceneError, UsvcError
+from usvc.core.scene import Camera, Frame, check_rotation
+from usvc.prepare.importers import FORMATS, load_scene
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 X_WORLD = np.array([0.3, -0.2, 1.7])

@@ -1,6 +1,6 @@
 import pytest
 
-from usvc.atomic import atomic_dir, atomic_file
+from usvc.core.atomic import atomic_dir, atomic_file
 
 
 def test_atomic_dir_replaces_only_on_success(tmp_path):

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from usvc.training import augment, roll_rotation, warp_view
+from usvc.buffer.augment import augment, roll_rotation, warp_view
 
 H, W = 480, 640
 

@@ -6,19 +6,25 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.errors import UsvcError
-from usvc.importers import load_scene
+from usvc.buffer.augment import warp_view
+from usvc.buffer.build import (
+    BufferOptions,
+    fill_buffer,
+    holdout_split,
+    read_buffer,
+    read_buffer_image_names,
+    working_short_side,
+    write_buffer,
+)
+from usvc.core.errors import UsvcError
+from usvc.core.scene import Camera, Frame
+from usvc.core.scene_io import read_scene_h5
+from usvc.generate.params import RoomParams
+from usvc.generate.writer import generate_scene
 from usvc.model.encoder import Encoder
 from usvc.model.preprocess import normalise
-from usvc.prepare import prepare_scene
-from usvc.scene import Camera, Frame
-from usvc.scene_io import read_scene_h5
-from usvc.synth.params import RoomParams
-from usvc.synth.writer import generate_scene
-from usvc.training.augment import warp_view
-from usvc.training.buffer import (BufferOptions, fill_buffer, holdout_split, read_buffer, read_buffer_image_names,
-                                  working_short_side,
-                                  write_buffer)
+from usvc.prepare.importers import load_scene
+from usvc.prepare.prepare import prepare_scene
 
 
 @pytest.fixture(scope="module")
@@ -104,8 +110,8 @@ def test_distorted_camera_is_rejected(encoder, tmp_path):
 def _keypoints_on_surface(prepared, frames, n=60, seed=0):
     """Surface points back-projected from frame 0's depth: frame 0 observes them in its 'track';
     the other frames can only see them through depth visibility. Plus points hidden behind walls."""
-    from usvc.scene_io import read_depth
-    from usvc.training.keypoint_obs import SceneKeypoints
+    from usvc.buffer.keypoint_obs import SceneKeypoints
+    from usvc.core.scene_io import read_depth
 
     rng = np.random.default_rng(seed)
     f0 = frames[0]
@@ -121,7 +127,7 @@ def _keypoints_on_surface(prepared, frames, n=60, seed=0):
 
 
 def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, encoder, tmp_path):
-    from usvc.scene_io import read_depth
+    from usvc.core.scene_io import read_depth
 
     frames = read_scene_h5(scene).split("train")
     kp, n = _keypoints_on_surface(scene, frames)
@@ -156,7 +162,7 @@ def test_without_depth_only_track_observations_are_used(scene, encoder):
 
 
 def test_keypoint_feature_is_the_cell_feature_at_a_cell_centre():
-    from usvc.training.keypoint_obs import sample_features
+    from usvc.buffer.keypoint_obs import sample_features
 
     fmap = torch.randn(16, 5, 7)
     pixels = np.array([[8 * 3 + 4.5, 8 * 2 + 4.5], [4.5, 4.5]], dtype=np.float32)  # cells (2, 3), (0, 0)
@@ -194,8 +200,8 @@ def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, 
     """The buffer records its encoder's fingerprint; a different configured encoder is refused at once."""
     from pathlib import Path
 
+    from usvc.buffer.build import check_buffer_encoder, read_buffer_attrs
     from usvc.model.encoder import encoder_fingerprint
-    from usvc.training.buffer import check_buffer_encoder, read_buffer_attrs
 
     frames = read_scene_h5(scene).split("train")
     path = tmp_path / "b.h5"

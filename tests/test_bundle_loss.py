@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.training.bundle_loss import bundle_loss, group_pairs
-from usvc.training.group_sampler import GroupSampler
-from usvc.training.reprojection_loss import reprojection_loss
+from usvc.train.bundle_loss import bundle_loss, group_pairs
+from usvc.train.group_sampler import GroupSampler
+from usvc.train.reprojection_loss import reprojection_loss
 
 K = torch.tensor([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
 
@@ -104,7 +104,7 @@ def test_gradient_is_the_same_bits_every_time(form, monkeypatch):
     `pred[a]` (advanced indexing) two CPU threads added repeated rows in timing order, and two
     2-thread training runs diverged. The pairs are shuffled here (same pairs, any order) so that
     such a race shows on every run instead of now and then."""
-    import usvc.training.bundle_loss as bl
+    import usvc.train.bundle_loss as bl
 
     real_pairs = bl.group_pairs
 

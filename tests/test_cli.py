@@ -24,11 +24,11 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from usvc.cli import main
-from usvc.evaluation.pose_errors import read_poses_txt, rotation_error_deg
-from usvc.importers import load_scene
+from usvc.core.pose_errors import read_poses_txt, rotation_error_deg
+from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
 from usvc.model.head import Head, Regressor, save_map
-from usvc.scene import Camera
+from usvc.prepare.importers import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 KEYS = {"name", "success", "inliers", "cells", "confidence", "seconds", "intrinsics_source"}
@@ -195,7 +195,7 @@ def test_intrinsics_from_exif_else_estimated(files: dict[str, Path], batch: dict
 
 def fake_estimates(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
     """Replace Relocalizer.localize: photo i gets a known pose, except photo 1, which fails."""
-    from usvc.relocalizer import PoseEstimate, Relocalizer
+    from usvc.relocalize.relocalizer import PoseEstimate, Relocalizer
 
     given: list[Any] = []
 
@@ -245,7 +245,7 @@ def test_exact_scene_coordinates_export_the_true_pose(files: dict[str, Path], tm
                                                        capsys: pytest.CaptureFixture[str]) -> None:
     """The real localize path (network replaced by exact coordinates) through to the files."""
     from usvc.model.encoder import cell_centers
-    from usvc.relocalizer import Relocalizer
+    from usvc.relocalize.relocalizer import Relocalizer
 
     R_true, t_true = Rotation.from_rotvec([0.1, -0.3, 0.05]).as_matrix(), np.array([0.2, -0.1, 1.5])
     fx, fy, cx, cy = 130.0, 125.0, 81.0, 59.0

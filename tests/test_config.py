@@ -6,12 +6,12 @@ from dataclasses import fields
 
 import pytest
 import yaml
+from conftest import REPO
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from conftest import REPO
-from usvc.config import GROUP_SCHEMAS, ConfigError, register_configs, validate
+from usvc.pipeline.config import GROUP_SCHEMAS, ConfigError, register_configs, validate
 
 register_configs()
 
@@ -76,7 +76,7 @@ def test_stage_reports_bad_config_in_one_line():
 def test_relocalizer_defaults_are_the_configured_ones():
     """The CLI and the Python API use RelocalizeOptions' defaults; the pipeline uses
     conf/relocalize/default.yaml. Both must hold the same (calibrated) values."""
-    from usvc.relocalizer import RelocalizeOptions
+    from usvc.relocalize.relocalizer import RelocalizeOptions
 
     configured = yaml.safe_load((REPO / "conf/relocalize/default.yaml").read_text())
     defaults = RelocalizeOptions()
@@ -96,7 +96,7 @@ def test_relocalize_thresholds_are_checked(override, message):
 
 
 def test_scripts_compose_the_stage_config_with_its_validation():
-    from usvc.config import compose_for_script
+    from usvc.pipeline.config import compose_for_script
 
     cfg = compose_for_script("office", ["buffer.holdout_every=8", "model=xfeat"])
     assert (cfg.scene.name, cfg.buffer.holdout_every, cfg.model.encoder) == ("office", 8, "xfeat")

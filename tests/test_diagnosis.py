@@ -6,10 +6,17 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.evaluation.diagnosis import BEHIND_PX, keypoint_errors, reprojection_px, track_retrieval, view_fit, view_fit_at
+from usvc.analysis.diagnosis import (
+    BEHIND_PX,
+    keypoint_errors,
+    reprojection_px,
+    track_retrieval,
+    view_fit,
+    view_fit_at,
+)
+from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder, cell_centers
-from usvc.scene import Camera
-from usvc.tracks import Tracks
+from usvc.sfm.tracks import Tracks
 
 K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
 

@@ -6,9 +6,9 @@ import re
 
 import pytest
 import yaml
-
 from conftest import REPO
-from usvc.config import GROUP_SCHEMAS
+
+from usvc.pipeline.config import GROUP_SCHEMAS
 
 DVC = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
 

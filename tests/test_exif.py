@@ -11,8 +11,8 @@ import pytest
 from PIL import Image, ImageOps
 from PIL.TiffImagePlugin import IFDRational
 
-from usvc.errors import SceneError
-from usvc.exif import exif_focal_px, oriented_size, read_image_bgr
+from usvc.core.errors import SceneError
+from usvc.core.exif import exif_focal_px, oriented_size, read_image_bgr
 
 W, H = 64, 48
 
@@ -114,7 +114,7 @@ def test_png_without_exif(tmp_path: Path) -> None:
 
 def test_truncated_jpeg_is_one_clear_error_not_grey_pixels(tmp_path: Path) -> None:
     """Decoders fill a cut-off JPEG with grey and carry on; usvc refuses it by name."""
-    from usvc.exif import jpeg_is_complete
+    from usvc.core.exif import jpeg_is_complete
 
     whole = photo(tmp_path / "whole.jpg", orientation=6, size=(160, 120), **{"a405": 28})
     data = whole.read_bytes()
@@ -131,8 +131,8 @@ def test_truncated_jpeg_is_one_clear_error_not_grey_pixels(tmp_path: Path) -> No
 
 def test_a_camera_for_the_unturned_size_names_the_exif_orientation(tmp_path: Path) -> None:
     """A photo stored 64x48 with orientation 6 is a 48x64 image; a 64x48 camera gets a reason."""
-    from usvc.scene import Camera
-    from usvc.undistort import check_image_size
+    from usvc.core.scene import Camera
+    from usvc.core.undistort import check_image_size
 
     path = photo(tmp_path / "turned.jpg", 6)
     image = read_image_bgr(path)

@@ -6,12 +6,11 @@ import h5py
 import numpy as np
 import pytest
 
-from usvc.errors import UsvcError
-from usvc.scene_io import read_scene_h5
-from usvc.tracks import read_tracks
-from usvc.training.buffer import read_buffer, read_buffer_attrs
-from usvc.training.keypoint_obs import read_scene_keypoints
-
+from usvc.buffer.build import read_buffer, read_buffer_attrs
+from usvc.buffer.keypoint_obs import read_scene_keypoints
+from usvc.core.errors import UsvcError
+from usvc.core.scene_io import read_scene_h5
+from usvc.sfm.tracks import read_tracks
 
 READERS = [
     (lambda d: read_scene_h5(d), "scene.h5", "prepared scene"),

@@ -15,16 +15,24 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from importer_fixtures import (  # noqa: F401
+    GL_FROM_CV,
+    SHARED,
+    X_WORLD,
+    GtCam,
+    assert_reprojects,
+    c2w_matrix,
+    make_gt,
+    project,
+    write_image,
+    write_pose_txt,
+)
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from usvc.errors import SceneError, UsvcError
-from usvc.importers import FORMATS, load_scene
-from usvc.scene import Camera, Frame, check_rotation
-
-from importer_fixtures import (  # noqa: F401
-    GtCam, make_gt, project, assert_reprojects, write_image, write_pose_txt, c2w_matrix, SHARED, X_WORLD, GL_FROM_CV,
-)
+from usvc.core.errors import SceneError, UsvcError
+from usvc.core.scene import Camera, Frame, check_rotation
+from usvc.prepare.importers import FORMATS, load_scene
 
 # ---------------------------------------------------------------- ACE layout
 

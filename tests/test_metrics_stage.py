@@ -17,12 +17,15 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from conftest import REPO
 from scipy.spatial.transform import Rotation
 
-from conftest import REPO
-from usvc.errors import UsvcError
-from usvc.evaluation import write_poses_txt
-from usvc.evaluation.evaluate import (
+from usvc.core.errors import UsvcError
+from usvc.core.geometry import camera_centers
+from usvc.core.pose_errors import write_poses_txt
+from usvc.core.scene import Camera, Frame, Scene
+from usvc.core.scene_io import write_scene_h5
+from usvc.metrics.evaluate import (
     PER_QUERY_COLUMNS,
     QueryStats,
     evaluate_initial_poses,
@@ -30,12 +33,9 @@ from usvc.evaluation.evaluate import (
     read_query_stats,
     read_refinement_records,
 )
-from usvc.evaluation.median_depth import median_scene_depth
-from usvc.evaluation.plots import error_cdf, principal_axes, write_plots
-from usvc.geometry import camera_centers
-from usvc.scene import Camera, Frame, Scene
-from usvc.scene_io import write_scene_h5
-from usvc.tracks import Tracks, write_tracks
+from usvc.metrics.plots import error_cdf, principal_axes, write_plots
+from usvc.sfm.median_depth import median_scene_depth
+from usvc.sfm.tracks import Tracks, write_tracks
 
 CAM = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 N_QUERIES = 8

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 from usvc.model import (
     Encoder,
     Head,

@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 import yaml
-from hydra import compose, initialize_config_dir
-
 from conftest import REPO
+from hydra import compose, initialize_config_dir
 from test_exif import photo
+
 from usvc import cli
-from usvc.config import register_configs, validate
-from usvc.errors import UsvcError
-from usvc.new_scene import NewSceneOptions, add_scene, find_checkout
+from usvc.core.errors import UsvcError
+from usvc.pipeline.config import register_configs, validate
+from usvc.prepare.new_scene import NewSceneOptions, add_scene, find_checkout
 
 register_configs()
 
@@ -40,9 +40,9 @@ def photos(tmp_path: Path) -> Path:
 def test_map_adds_photos_config_and_params_entry(checkout: Path, photos: Path, monkeypatch, capsys) -> None:
     monkeypatch.chdir(checkout / "conf")  # any folder inside the checkout
     calls = []
-    monkeypatch.setattr("usvc.new_scene.subprocess.run",
+    monkeypatch.setattr("usvc.prepare.new_scene.subprocess.run",
                         lambda cmd, cwd, check: calls.append((cmd, cwd)) or type("R", (), {"returncode": 0})())
-    monkeypatch.setattr("usvc.new_scene.shutil.which", lambda name: f"/bin/{name}")
+    monkeypatch.setattr("usvc.prepare.new_scene.shutil.which", lambda name: f"/bin/{name}")
     assert cli.main(["map", str(photos), "--name", "kitchen"]) == 0
     assert calls == [(["/bin/dvc", "repro", "metrics@kitchen"], checkout)]
     assert '"photos": 9' in capsys.readouterr().out

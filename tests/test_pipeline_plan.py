@@ -9,12 +9,18 @@ import textwrap
 
 import pytest
 import yaml
-
 from conftest import REPO
-from usvc.errors import UsvcError
-from usvc.pipeline_plan import (PlanError, first_affected_stage, load_plan, override_key, split_plan,
-                                stages_reading)
-from usvc.sweep import column_order, format_table, sweep_table
+
+from usvc.core.errors import UsvcError
+from usvc.pipeline.plan import (
+    PlanError,
+    first_affected_stage,
+    load_plan,
+    override_key,
+    split_plan,
+    stages_reading,
+)
+from usvc.pipeline.sweep import column_order, format_table, sweep_table
 
 PLAN = load_plan(REPO / "dvc.yaml")
 

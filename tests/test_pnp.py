@@ -5,9 +5,10 @@ import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
 
-from usvc.errors import UsvcError
-from usvc.evaluation import BACKENDS, rotation_error_deg, solve_pnp, translation_error
-from usvc.scene import Camera
+from usvc.core.errors import UsvcError
+from usvc.core.pose_errors import rotation_error_deg, translation_error
+from usvc.core.scene import Camera
+from usvc.relocalize.pnp import BACKENDS, solve_pnp
 
 PINHOLE = Camera("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
 R_TRUE = Rotation.from_euler("xyz", [12.0, -30.0, 75.0], degrees=True).as_matrix()

@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from usvc.errors import UsvcError
-from usvc.evaluation import read_poses_txt, rotation_error_deg, summarize, translation_error, write_poses_txt
+from usvc.core.errors import UsvcError
+from usvc.core.pose_errors import (
+    read_poses_txt,
+    rotation_error_deg,
+    summarize,
+    translation_error,
+    write_poses_txt,
+)
 
 KEYS = {
     "acc_10cm_5deg", "acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_5deg_3pct", "median_rot_deg",

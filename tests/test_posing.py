@@ -8,17 +8,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from conftest import shared_scene
+from scipy.spatial.transform import Rotation
 from test_exif import photo
-from usvc.errors import SceneError, SfmError, UsvcError
-from usvc.evaluation.alignment import align_and_compare
-from usvc.importers import load_scene
-from usvc.prepare import prepare_scene
-from usvc.scene import Camera, Frame
-from usvc.scene_io import read_scene_h5
-from usvc.sfm import SfmOptions
+
+from usvc.core.errors import SceneError, SfmError, UsvcError
+from usvc.core.scene import Camera, Frame
+from usvc.core.scene_io import read_scene_h5
+from usvc.metrics.alignment import align_and_compare
+from usvc.prepare.importers import load_scene
+from usvc.prepare.prepare import prepare_scene
+from usvc.sfm.sfm import SfmOptions
 
 OPTS = SfmOptions(max_num_features=4096, matching="auto", exhaustive_max_images=150, sequential_overlap=10,
                   pose_pairs_per_image=20, reconstruction="auto", min_points=100, num_threads=-1, seed=0)
@@ -105,8 +105,8 @@ def _check_posed(prepared: Path, given: list[Frame], stats: dict, rot_deg: float
 
 @pytest.mark.slow
 def test_unposed_miniature_photos_get_the_true_poses_up_to_a_similarity(tmp_path: Path) -> None:
-    from usvc.synth.params import RoomParams
-    from usvc.synth.writer import generate_scene
+    from usvc.generate.params import RoomParams
+    from usvc.generate.writer import generate_scene
 
     raw = tmp_path / "raw"
     generate_scene(raw, RoomParams(frames_per_map_sequence=12, n_query_frames=2, supersample=1))

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
+from usvc.generate.params import RoomParams, validate
 from usvc.model.encoder import encoder_fingerprint, load_encoder_weights
-from usvc.synth.params import RoomParams, validate
-from usvc.training.encoder_file import save_encoder_weights
-from usvc.training.pretrain import PretrainOptions, crop_view, pretrain_encoder
-from usvc.training.pretrain_data import corpus_params, render_scene
+from usvc.pretrain.encoder_file import save_encoder_weights
+from usvc.pretrain.pretrain import PretrainOptions, crop_view, pretrain_encoder
+from usvc.pretrain.pretrain_data import corpus_params, render_scene
 
 
 @pytest.fixture(scope="module")

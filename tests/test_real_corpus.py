@@ -6,12 +6,16 @@ import cv2
 import numpy as np
 import pytest
 
-from usvc.errors import UsvcError
-from usvc.scene import Camera, Frame, Scene
-from usvc.scene_io import IMAGE_DIR, write_scene_h5
-from usvc.tracks import Tracks, write_tracks
-from usvc.training.pretrain import PretrainOptions, contrastive_loss, pair_frames
-from usvc.training.real_corpus import LABEL_RADIUS_PX, REFERENCE_DEPTH, real_corpus_scene
+from usvc.core.errors import UsvcError
+from usvc.core.scene import Camera, Frame, Scene
+from usvc.core.scene_io import IMAGE_DIR, write_scene_h5
+from usvc.pretrain.pretrain import PretrainOptions, contrastive_loss, pair_frames
+from usvc.pretrain.real_corpus import (
+    LABEL_RADIUS_PX,
+    REFERENCE_DEPTH,
+    real_corpus_scene,
+)
+from usvc.sfm.tracks import Tracks, write_tracks
 
 H, W, F = 48, 64, 50.0
 
@@ -93,7 +97,7 @@ def test_a_scene_without_tracks_is_one_clear_error(tmp_path):
 
 def test_fine_tuning_on_a_real_capture_starts_from_the_given_weights_and_writes_an_encoder(tmp_path):
     from usvc.model.encoder import encoder_fingerprint, load_encoder_weights
-    from usvc.training.pretrain import pretrain_encoder
+    from usvc.pretrain.pretrain import pretrain_encoder
     from usvc.weights import encoder_weights_path
 
     scene_dir, _ = _scene_dir(tmp_path)
@@ -112,8 +116,8 @@ def test_fine_tuning_on_a_real_capture_starts_from_the_given_weights_and_writes_
 def test_model_small_real_loads_the_shipped_real_photo_encoder(tmp_path, monkeypatch):
     import json
 
-    from usvc.config import compose_for_script
     from usvc.model.encoder import encoder_fingerprint
+    from usvc.pipeline.config import compose_for_script
     from usvc.weights import WEIGHTS_DIR, encoder_weights_path, load_configured_encoder
 
     monkeypatch.chdir(tmp_path)  # a bare name resolves to the shipped file from any working directory

@@ -17,15 +17,21 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from usvc.evaluation import rotation_error_deg, solve_pnp
-from usvc.evaluation.pnp import project_points, reprojection_inliers
+from usvc.core.pose_errors import rotation_error_deg
+from usvc.core.scene import Camera, Frame
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, map_keypoints, read_map_header, save_map
-from usvc.refinement import RefineOptions, RefineResult, keypoint_cell_mask, pose_change, refine_pose
-from usvc.relocalize_scene import write_results
-from usvc.relocalizer import PoseEstimate, Relocalizer, RelocalizeOptions
-from usvc.scene import Camera, Frame
+from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
+from usvc.relocalize.refinement import (
+    RefineOptions,
+    RefineResult,
+    keypoint_cell_mask,
+    pose_change,
+    refine_pose,
+)
+from usvc.relocalize.relocalize_scene import write_results
+from usvc.relocalize.relocalizer import PoseEstimate, RelocalizeOptions, Relocalizer
 
 CAM = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))  # 20x15 cells
 H_CELLS, W_CELLS = 15, 20
@@ -256,7 +262,7 @@ def test_relocalizer_refines_with_map_keypoints(tmp_path: Path, synthetic_query:
 def test_relocalizer_without_map_keypoints_warns_and_skips(tmp_path: Path, synthetic_query: np.ndarray,
                                                            caplog: pytest.LogCaptureFixture):
     path = make_map(tmp_path / "map.pt", None)
-    with caplog.at_level(logging.WARNING, logger="usvc.relocalizer"):
+    with caplog.at_level(logging.WARNING, logger="usvc.relocalize.relocalizer"):
         reloc = Relocalizer(path, tmp_path / "encoder.pt")
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "no 3D keypoints" in warnings[0].getMessage()

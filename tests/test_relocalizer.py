@@ -16,14 +16,15 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from usvc.errors import UsvcError
-from usvc.evaluation import BACKENDS, rotation_error_deg
+from usvc.core.errors import UsvcError
+from usvc.core.pose_errors import rotation_error_deg
+from usvc.core.scene import Camera
+from usvc.core.undistort import undistorted_camera
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, save_map
-from usvc.relocalizer import PoseEstimate, Relocalizer, RelocalizeOptions
-from usvc.scene import Camera
-from usvc.undistort import undistorted_camera
+from usvc.relocalize.pnp import BACKENDS
+from usvc.relocalize.relocalizer import PoseEstimate, RelocalizeOptions, Relocalizer
 
 SHORT_SIDE = 120  # the map's working resolution: 160x120 images, 20x15 cells
 WORK_CAMERA = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.training import circle_threshold, reprojection_loss
+from usvc.train.reprojection_loss import reprojection_loss
+from usvc.train.schedule import circle_threshold
 
 
 def _random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:

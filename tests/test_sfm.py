@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import shared_scene
-from usvc.errors import SfmError
-from usvc.importers import load_scene
-from usvc.prepare import prepare_scene
-from usvc.scene import Camera, Frame, Scene
-from usvc.scene_io import IMAGE_DIR, read_scene_h5
-from usvc.sfm import SfmOptions, pose_pairs, reconstruct
-from usvc.tracks import from_reconstruction, read_tracks, sfm_stats, write_tracks
+
+from usvc.core.errors import SfmError
+from usvc.core.scene import Camera, Frame, Scene
+from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
+from usvc.prepare.importers import load_scene
+from usvc.prepare.prepare import prepare_scene
+from usvc.sfm.sfm import SfmOptions, pose_pairs, reconstruct
+from usvc.sfm.tracks import from_reconstruction, read_tracks, sfm_stats, write_tracks
 
 OPTS = SfmOptions(max_num_features=4096, matching="auto", exhaustive_max_images=150, sequential_overlap=10,
                   pose_pairs_per_image=20, reconstruction="auto", min_points=100, num_threads=-1, seed=0)
@@ -89,8 +89,8 @@ def test_office_imported_poses_reproject_under_one_pixel(tmp_path):
 @pytest.fixture(scope="module")
 def small_mini(tmp_path_factory):
     """A 24-image miniature scene, prepared."""
-    from usvc.synth.params import RoomParams
-    from usvc.synth.writer import generate_scene
+    from usvc.generate.params import RoomParams
+    from usvc.generate.writer import generate_scene
 
     root = tmp_path_factory.mktemp("mini")
     generate_scene(root / "raw", RoomParams(frames_per_map_sequence=12, n_query_frames=2, supersample=1))
@@ -103,9 +103,9 @@ def small_mini(tmp_path_factory):
 _RECONSTRUCT = """
 import sys
 from pathlib import Path
-from usvc.scene_io import IMAGE_DIR, read_scene_h5
-from usvc.sfm import SfmOptions, reconstruct
-from usvc.tracks import from_reconstruction, write_tracks
+from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
+from usvc.sfm.sfm import SfmOptions, reconstruct
+from usvc.sfm.tracks import from_reconstruction, write_tracks
 prepared, work = Path(sys.argv[1]), Path(sys.argv[2])
 opts = SfmOptions(**eval(sys.argv[3]))
 rec, _ = reconstruct(read_scene_h5(prepared).split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True)
@@ -118,7 +118,7 @@ def test_same_config_gives_identical_tracks(small_mini, tmp_path):
     """Two runs of SfM, each in a fresh process as every stage runs, give the same bits.
 
     With threaded matching this failed now and then in full test runs (3,214-3,235 points of
-    3,235), never when run alone; matching now runs on one thread (usvc/sfm.py)."""
+    3,235), never when run alone; matching now runs on one thread (usvc/sfm/sfm.py)."""
     import subprocess
     import sys
 
@@ -158,8 +158,8 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
     """The classical baseline: queries matched to the mapping model only; their poses are never read."""
     from dataclasses import replace
 
-    from usvc.evaluation import rotation_error_deg, translation_error
-    from usvc.evaluation.baseline_sift import sift_pnp_baseline
+    from usvc.analysis.baseline_sift import sift_pnp_baseline
+    from usvc.core.pose_errors import rotation_error_deg, translation_error
 
     scene = read_scene_h5(small_mini)
     truth = {f.name: f for f in scene.split("test")}
@@ -191,8 +191,8 @@ def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
     """Right poses agree with the images' matches; the same poses shuffled among the images do not."""
     from dataclasses import replace
 
-    from usvc.pose_check import pose_agreement, warn_if_poses_disagree
-    from usvc.sfm import extract, match
+    from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
+    from usvc.sfm.sfm import extract, match
 
     frames = read_scene_h5(small_mini).split("train")
     db = tmp_path / "database.db"

@@ -3,7 +3,7 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 from usvc.splat import ply_io
 from usvc.splat.gaussians import Gaussians
 from usvc.splat.ply_io import read_splat_ply, splat_property_names, write_splat_ply

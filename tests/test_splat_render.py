@@ -9,13 +9,27 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.splat.densify import DensifyOptions, DensityStats, densify_and_prune, reset_opacity
-from usvc.splat.fit import FitImage, FitOptions, fit_gaussians, psnr
+from usvc.gaussians.densify import (
+    DensifyOptions,
+    DensityStats,
+    densify_and_prune,
+    reset_opacity,
+)
+from usvc.gaussians.fit import FitImage, FitOptions, fit_gaussians, psnr
+from usvc.render.novel_views import orbit_pose, visible_keypoints
+from usvc.render.novel_views import project as project_np
 from usvc.splat.gaussians import PARAM_NAMES, Gaussians, covariances, from_points
-from usvc.splat.novel_views import orbit_pose, project as project_np, visible_keypoints
 from usvc.splat.ply_io import read_splat_ply, write_splat_ply
-from usvc.splat.rasterize import (ALPHA_MAX, ALPHA_MIN, BlendTiles, View, pixel_basis, project,
-                                  quadratic_form, render)
+from usvc.splat.rasterize import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    BlendTiles,
+    View,
+    pixel_basis,
+    project,
+    quadratic_form,
+    render,
+)
 from usvc.splat.sh import C0, rgb_to_dc
 
 
@@ -204,8 +218,8 @@ def test_visibility_uses_rendered_depth_and_alpha():
 
 
 def _frames_and_keypoints(tmp_path):
-    from usvc.scene import Camera, Frame
-    from usvc.training.keypoint_obs import SceneKeypoints
+    from usvc.buffer.keypoint_obs import SceneKeypoints
+    from usvc.core.scene import Camera, Frame
 
     g = _scene(200, seed=7, degree=0)
     g.opacity_logits = torch.full((200,), 4.0)
@@ -223,8 +237,8 @@ def _frames_and_keypoints(tmp_path):
 
 
 def test_novel_views_round_trip_through_the_render_artifact(tmp_path):
-    from usvc.splat.novel_views import NovelViewOptions, render_novel_views
-    from usvc.splat.render_io import read_rendered_views, write_rendered_views
+    from usvc.render.novel_views import NovelViewOptions, render_novel_views
+    from usvc.render.render_io import read_rendered_views, write_rendered_views
 
     g, frames, kp = _frames_and_keypoints(tmp_path)
     opts = NovelViewOptions(views=4, max_angle_deg=10, cluster_radius_rel=0.5, min_cluster_keypoints=5,
@@ -246,11 +260,11 @@ def test_novel_views_round_trip_through_the_render_artifact(tmp_path):
 
 
 def test_clear_errors_for_missing_inputs(tmp_path):
-    from usvc.errors import UsvcError
-    from usvc.scene import Camera, Frame
-    from usvc.splat.fit import load_fit_images
-    from usvc.splat.novel_views import NovelViewOptions, render_novel_views
-    from usvc.splat.render_io import read_rendered_views
+    from usvc.core.errors import UsvcError
+    from usvc.core.scene import Camera, Frame
+    from usvc.gaussians.fit import load_fit_images
+    from usvc.render.novel_views import NovelViewOptions, render_novel_views
+    from usvc.render.render_io import read_rendered_views
 
     with pytest.raises(UsvcError, match="run the render stage"):
         read_rendered_views(tmp_path / "nothing")

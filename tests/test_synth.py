@@ -11,11 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from usvc.errors import UsvcError
-from usvc.synth import RoomParams, generate_scene, intrinsics, make_layout, validate
-from usvc.synth import writer
-from usvc.synth.room import cast
-from usvc.synth.trajectory import MIN_CLEARANCE
+from usvc.core.errors import UsvcError
+from usvc.generate import writer
+from usvc.generate.params import RoomParams, validate
+from usvc.generate.room import cast, make_layout
+from usvc.generate.trajectory import MIN_CLEARANCE
+from usvc.generate.writer import generate_scene, intrinsics
 
 TINY = dict(frames_per_map_sequence=3, n_query_frames=2)
 

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from usvc import threads
+from usvc.pipeline import threads
 
 
 def test_numbers_are_used_as_given_and_bad_values_refused():
@@ -48,7 +48,7 @@ def test_ancestors_do_not_count():
     """A stage started by pytest or DVC does not count its own parent as a job beside it."""
     import os
 
-    code = "import os; from usvc import threads; print(os.getppid() in threads.other_jobs())"
+    code = "import os; from usvc.pipeline import threads; print(os.getppid() in threads.other_jobs())"
     child = subprocess.run([sys.executable, "-c", code, "-m", "stages.train"], capture_output=True, text=True,
                            check=True)
     assert child.stdout.strip() == "False"
@@ -67,10 +67,10 @@ def test_cores_respect_the_affinity_mask():
 
 
 def test_config_refuses_a_bad_thread_setting():
+    from conftest import REPO
     from hydra import compose, initialize_config_dir
 
-    from conftest import REPO
-    from usvc.config import ConfigError, register_configs, validate
+    from usvc.pipeline.config import ConfigError, register_configs, validate
 
     register_configs()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
@@ -93,7 +93,7 @@ def test_a_job_pinned_to_other_cores_is_not_counted():
     first, rest = {cpus[0]}, set(cpus[1:])
     pinned = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "-m", "stages.train"],
                               preexec_fn=lambda: os.sched_setaffinity(0, rest))
-    probe = "import os, sys; from usvc import threads; print(int(sys.argv[1]) in threads.other_jobs())"
+    probe = "import os, sys; from usvc.pipeline import threads; print(int(sys.argv[1]) in threads.other_jobs())"
     try:
         time.sleep(0.5)
         apart = subprocess.run([sys.executable, "-c", probe, str(pinned.pid)], capture_output=True, text=True,
@@ -110,7 +110,7 @@ def test_a_parents_export_is_not_taken_for_a_users_ceiling():
     """A Hydra/submitit job inherits the thread variables its launcher exported; they must not cap it."""
     import os
 
-    code = "from usvc import threads; print(repr(threads._USER_OMP))"
+    code = "from usvc.pipeline import threads; print(repr(threads._USER_OMP))"
     env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS and k != threads.EXPORT_MARK}
     ours = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                           env={**env, "OMP_NUM_THREADS": "2", threads.EXPORT_MARK: "2"})

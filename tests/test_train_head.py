@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.errors import UsvcError
+from usvc.buffer.build import TrainingBuffer
+from usvc.core.errors import UsvcError
 from usvc.model.head import Head
-from usvc.training.adabelief import AdaBelief
-from usvc.training.buffer import TrainingBuffer
-from usvc.training.train_head import TrainOptions, mapping_center, train_head
+from usvc.train.adabelief import AdaBelief
+from usvc.train.train_head import TrainOptions, mapping_center, train_head
 
 
 def test_flat_head_equals_conv_head():

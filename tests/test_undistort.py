@@ -12,15 +12,27 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-
 from conftest import REPO, shared_scene
-from usvc.distorted_scene import DistortOptions, distorted_camera, undistortion_psnr, write_distorted_scene
-from usvc.errors import SceneError
-from usvc.importers import load_scene
-from usvc.prepare import prepare_scene
-from usvc.scene import Camera, Frame, Scene
-from usvc.scene_io import read_scene_h5, read_source_cameras
-from usvc.undistort import distort_pinhole, resample, to_pycolmap, undistort, undistorted_camera, valid_mask
+
+from usvc.analysis.distorted_scene import (
+    DistortOptions,
+    distorted_camera,
+    undistortion_psnr,
+    write_distorted_scene,
+)
+from usvc.core.errors import SceneError
+from usvc.core.scene import Camera, Frame, Scene
+from usvc.core.scene_io import read_scene_h5, read_source_cameras
+from usvc.core.undistort import (
+    distort_pinhole,
+    resample,
+    to_pycolmap,
+    undistort,
+    undistorted_camera,
+    valid_mask,
+)
+from usvc.prepare.importers import load_scene
+from usvc.prepare.prepare import prepare_scene
 
 PINHOLE = Camera("PINHOLE", 160, 120, (150.0, 150.0, 80.0, 60.0))
 DISTORTED = {

@@ -9,8 +9,12 @@ import torch
 
 from usvc.model import Head, ModelError, Regressor, load_map, save_map
 from usvc.model.encoder import feature_size
-from usvc.model.xfeat_encoder import FEATURE_DIM, load_xfeat_encoder, shipped_xfeat_weights
 from usvc.model.head import read_map_header
+from usvc.model.xfeat_encoder import (
+    FEATURE_DIM,
+    load_xfeat_encoder,
+    shipped_xfeat_weights,
+)
 from usvc.weights import load_configured_encoder
 
 

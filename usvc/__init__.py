@@ -13,7 +13,7 @@ __all__ = ["PoseEstimate", "RelocalizeOptions", "Relocalizer"]
 
 def __getattr__(name: str) -> Any:
     if name in __all__:
-        from usvc import relocalizer
+        from usvc.relocalize import relocalizer
 
         return getattr(relocalizer, name)
     raise AttributeError(f"module 'usvc' has no attribute {name!r}")

@@ -12,19 +12,19 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from usvc import threads
-from usvc.errors import SceneError, UsvcError
-from usvc.logs import quiet_third_party
+from usvc.core.errors import SceneError, UsvcError
+from usvc.pipeline import threads
+from usvc.pipeline.logs import quiet_third_party
 
 if TYPE_CHECKING:
-    from usvc.scene import Camera
+    from usvc.core.scene import Camera
 
 log = logging.getLogger("usvc")
 
 
 def _pretrain(args: argparse.Namespace) -> int:
-    from usvc.training.encoder_file import save_encoder_weights
-    from usvc.training.pretrain import PretrainOptions, pretrain_encoder
+    from usvc.pretrain.encoder_file import save_encoder_weights
+    from usvc.pretrain.pretrain import PretrainOptions, pretrain_encoder
 
     known = {f.name for f in fields(PretrainOptions)}
     overrides = {}
@@ -50,7 +50,7 @@ CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_
 
 def _map(args: argparse.Namespace) -> int:
     """Add the scene to the checkout around the working directory, then run its pipeline."""
-    from usvc.new_scene import NewSceneOptions, add_scene, find_checkout, repro
+    from usvc.prepare.new_scene import NewSceneOptions, add_scene, find_checkout, repro
 
     checkout = find_checkout(Path.cwd())
     opts = NewSceneOptions(args.name, args.format, args.split_n, args.working_width, args.metric_scale)
@@ -96,7 +96,7 @@ def _split_camera(tokens: list[str]) -> tuple[str, tuple[float, ...], list[str]]
 
 def _expand_photos(args: list[str]) -> list[tuple[str, Path]]:
     """(name, path) per photo: files as given, folders as their images sorted by name."""
-    from usvc.importers import IMAGE_SUFFIXES
+    from usvc.prepare.importers import IMAGE_SUFFIXES
 
     photos: list[tuple[str, Path]] = []
     for arg in args:
@@ -117,7 +117,7 @@ def _expand_photos(args: list[str]) -> list[tuple[str, Path]]:
 
 
 def _formats(args: argparse.Namespace) -> list[str]:
-    from usvc.exports import FORMATS
+    from usvc.relocalize.exports import FORMATS
 
     if args.out_dir is None:
         if args.format:
@@ -135,8 +135,8 @@ def _formats(args: argparse.Namespace) -> list[str]:
 def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]] | None, name: str,
                   path: Path) -> tuple[Camera | None, str]:
     """The first intrinsics source that applies: --focal, --intrinsics, --camera, EXIF, else none."""
-    from usvc.exif import exif_focal_px, oriented_size
-    from usvc.scene import Camera
+    from usvc.core.exif import exif_focal_px, oriented_size
+    from usvc.core.scene import Camera
 
     w, h = oriented_size(path)
     params: tuple[float, ...]
@@ -170,7 +170,7 @@ def _localize(args: argparse.Namespace) -> int:
     with "error" and the others go on; the exit status is then 1. --out-dir files are written
     only at the end, each atomically.
     """
-    from usvc.exports import Posed, check_names, export
+    from usvc.relocalize.exports import Posed, check_names, export
 
     camera = None
     photo_args = list(args.photos)
@@ -187,8 +187,8 @@ def _localize(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from usvc.exif import read_image_bgr
-    from usvc.relocalizer import Relocalizer, RelocalizeOptions
+    from usvc.core.exif import read_image_bgr
+    from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
     threads.apply(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():

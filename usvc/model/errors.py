@@ -1,6 +1,6 @@
 """The model's user-facing error, so stages report bad weight or map files in one line."""
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 
 
 class ModelError(UsvcError):

@@ -18,8 +18,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from usvc.atomic import atomic_file
-from usvc.model.encoder import Encoder, _first_line, check_state_dict, encoder_fingerprint
+from usvc.core.atomic import atomic_file
+from usvc.model.encoder import (
+    Encoder,
+    _first_line,
+    check_state_dict,
+    encoder_fingerprint,
+)
 from usvc.model.errors import ModelError
 from usvc.model.safe_load import load_tensors
 

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 from usvc.splat.sh import num_coeffs, rgb_to_dc
 
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")

@@ -39,9 +39,9 @@ import weakref
 
 import torch
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 from usvc.splat.gaussians import Gaussians
-from usvc.splat.rasterize import RenderOutput, View
+from usvc.splat.view import RenderOutput, View
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from usvc.atomic import atomic_file
-from usvc.errors import UsvcError
+from usvc.core.atomic import atomic_file
+from usvc.core.errors import UsvcError
 from usvc.splat.gaussians import Gaussians
 
 # number of f_rest_* properties -> SH degree; (d+1)^2 - 1 coefficients per channel, 3 channels

@@ -17,24 +17,12 @@ from dataclasses import dataclass
 import torch
 
 from usvc.splat.gaussians import Gaussians, covariances
+from usvc.splat.gsplat_backend import gsplat_available, render_gsplat
 from usvc.splat.sh import eval_sh, num_coeffs
+from usvc.splat.view import RenderOutput, View
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
-
-
-@dataclass(frozen=True)
-class View:
-    """A pinhole view: world-to-camera R (3, 3), t (3,), intrinsics K (3, 3), size in pixels."""
-
-    R: torch.Tensor
-    t: torch.Tensor
-    K: torch.Tensor
-    width: int
-    height: int
-
-    def to(self, device: str | torch.device) -> "View":
-        return View(self.R.to(device), self.t.to(device), self.K.to(device), self.width, self.height)
 
 
 @dataclass
@@ -45,15 +33,6 @@ class Projected:
     radii: torch.Tensor  # (N,) px, 0 where culled
     colors: torch.Tensor  # (N, 3)
     opacities: torch.Tensor  # (N,)
-
-
-@dataclass
-class RenderOutput:
-    rgb: torch.Tensor  # (H, W, 3)
-    depth: torch.Tensor  # (H, W) expected depth of the composited Gaussians (0 where alpha is 0)
-    alpha: torch.Tensor  # (H, W) accumulated opacity
-    means2d: torch.Tensor  # (N, 2), retains its gradient for densification
-    radii: torch.Tensor  # (N,)
 
 
 def project(g: Gaussians, view: View, sh_degree: int | None = None, eps2d: float = 0.3,
@@ -258,7 +237,6 @@ def render(g: Gaussians, view: View, sh_degree: int | None = None, background: t
     if backend not in BACKENDS:
         raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")
     if backend != "torch":
-        from usvc.splat.gsplat_backend import gsplat_available, render_gsplat
 
         if backend == "gsplat" or gsplat_available(g.means.device):
             return render_gsplat(g, view, sh_degree, background)

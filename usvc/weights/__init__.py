@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from usvc.errors import UsvcError
+from usvc.core.errors import UsvcError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent
 SHIPPED = {1.0: "encoder_default.pt", 0.5: "encoder_small.pt"}

@@ -1,0 +1,67 @@
+"""The code layout follows the pipeline: a package per stage, no import cycles, and dvc.yaml lists
+exactly the code each stage runs (so editing a module reruns exactly the stages that import it)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from usvc.pipeline import code_deps
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = list(yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"])
+
+
+def test_every_stage_has_its_package_and_runs_it():
+    for stage in STAGES:
+        package = ROOT / "usvc" / stage
+        assert (package / "__init__.py").is_file(), f"no package usvc/{stage} for stage {stage}"
+        deps = code_deps.stage_code_deps(stage)
+        assert any(d == f"usvc/{stage}" or d.startswith(f"usvc/{stage}/") for d in deps), (stage, deps)
+
+
+def test_dvc_yaml_lists_the_code_each_stage_runs():
+    diff = code_deps.differences()
+    expected = {s: code_deps.stage_code_deps(s) for s in diff}
+    assert diff == {}, (
+        "dvc.yaml's code deps differ from the stages' imports (run `python -m usvc.pipeline.code_deps --write`):\n"
+        + "\n".join(f"{s}: missing {m}, not run {e}\n  expected {expected[s]}" for s, (m, e) in diff.items()))
+
+
+def test_a_dep_missing_from_dvc_yaml_is_reported(tmp_path):
+    text = (ROOT / "dvc.yaml").read_text()
+    assert "        - usvc/sfm/tracks.py\n" in text
+    broken = tmp_path / "dvc.yaml"
+    # Drop tracks.py from every stage that lists it, and add a module that no stage imports.
+    broken.write_text(text.replace("        - usvc/sfm/tracks.py\n", "").replace(
+        "        - stages/relocalize.py\n", "        - stages/relocalize.py\n        - usvc/gaussians/fit.py\n"))
+    diff = code_deps.differences(broken)
+    assert diff["train"][0] == ["usvc/sfm/tracks.py"]
+    assert diff["keypoints"][0] == ["usvc/sfm/tracks.py"]
+    assert diff["relocalize"] == ([], ["usvc/gaussians/fit.py"])
+
+
+def test_function_local_and_dynamic_imports_count():
+    # sfm imports the thread policy inside a function; prepare loads its format importers by name.
+    assert ROOT / "usvc/pipeline/threads.py" in code_deps.closure("usvc.sfm.sfm")
+    prepare = code_deps.closure("usvc.prepare.importers")
+    assert ROOT / "usvc/prepare/importers/cambridge.py" in prepare
+
+
+def test_no_import_cycles():
+    assert code_deps.cycles(code_deps.import_graph()) == []
+
+
+def test_cycles_are_found():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert code_deps.cycles(graph) == [["a", "b", "c"]]
+
+
+def test_the_config_schema_does_not_load_the_scene_generator():
+    code = ("import sys; import usvc.pipeline.config; "
+            "print(sorted(m for m in sys.modules if m.startswith(('usvc.generate.', 'torch', 'cv2'))))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['usvc.generate.params']"

@@ -1,0 +1,114 @@
+"""The prepared scene on disk: images at working resolution plus one `scene.h5` of metadata.
+
+Every stage after `prepare` reads this, never the source format, so importers run once.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from usvc.core.errors import SceneError
+from usvc.core.h5io import read_h5, write_h5
+from usvc.core.scene import CAMERA_MODELS, Camera, Frame, Scene
+
+SCENE_FILE = "scene.h5"
+IMAGE_DIR = "images"
+_MAX_PARAMS = max(CAMERA_MODELS.values())
+
+
+def _camera_arrays(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    params = np.full((len(cameras), _MAX_PARAMS), np.nan)
+    for i, c in enumerate(cameras):
+        params[i, : len(c.params)] = c.params
+    models = np.array([c.model for c in cameras], dtype=object)
+    return models, np.array([[c.width, c.height] for c in cameras], dtype=np.int32), params
+
+
+def _cameras_from(models: list[str], sizes: np.ndarray, params: np.ndarray) -> list[Camera]:
+    return [Camera(m, int(sizes[i, 0]), int(sizes[i, 1]), tuple(float(v) for v in params[i, : CAMERA_MODELS[m]]))
+            for i, m in enumerate(models)]
+
+
+def _strings(ds: h5py.Dataset) -> list[str]:
+    return [s.decode() if isinstance(s, bytes) else s for s in ds[()]]
+
+
+def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | None = None,
+                   source_cameras: list[Camera] | None = None) -> None:
+    """Store frames, cameras and poses; images are referenced by name under IMAGE_DIR.
+
+    ``source_cameras`` are the cameras of the images as imported (before undistortion and
+    resizing), one per frame: the query side can undistort new photos of the same camera.
+    """
+    models, sizes, params = _camera_arrays([f.camera for f in scene.frames])
+    R = np.stack([f.R if f.has_pose else np.full((3, 3), np.nan) for f in scene.frames])
+    t = np.stack([f.t if f.has_pose else np.full(3, np.nan) for f in scene.frames])
+    with write_h5(path) as h5:
+        h5.attrs["name"] = scene.name
+        h5.attrs["metric_scale"] = np.nan if scene.metric_scale is None else scene.metric_scale
+        h5.attrs["has_poses"] = scene.has_poses
+        h5.attrs["pose_source"] = scene.pose_source
+        str_dt = h5py.string_dtype()
+        h5.create_dataset("name", data=np.array([f.name for f in scene.frames], dtype=object), dtype=str_dt)
+        h5.create_dataset("split", data=np.array([f.split for f in scene.frames], dtype=object), dtype=str_dt)
+        h5.create_dataset("camera_model", data=models, dtype=str_dt)
+        h5["camera_size"] = sizes
+        h5["camera_params"] = params
+        if source_cameras is not None:
+            if len(source_cameras) != len(scene.frames):
+                raise SceneError(f"{path}: {len(source_cameras)} source cameras for {len(scene.frames)} frames")
+            s_models, s_sizes, s_params = _camera_arrays(source_cameras)
+            h5.create_dataset("source_camera_model", data=s_models, dtype=str_dt)
+            h5["source_camera_size"] = s_sizes
+            h5["source_camera_params"] = s_params
+        h5["R_world_to_cam"] = R
+        h5["t_world_to_cam"] = t
+        if depths is not None and any(d is not None for d in depths):
+            grp = h5.create_group("depth")
+            for i, d in enumerate(depths):
+                if d is not None:
+                    grp.create_dataset(str(i), data=d.astype(np.float32), compression="gzip")
+
+
+def read_scene_h5(prepared_dir: Path) -> Scene:
+    """Load a prepared scene; image paths point into the prepared image folder."""
+    prepared_dir = Path(prepared_dir)
+    path = prepared_dir / SCENE_FILE
+    if not path.is_file():
+        raise SceneError(f"prepared scene not found: {path} (run the prepare stage first)")
+    with read_h5(path, "prepared scene") as h5:
+        names, splits = _strings(h5["name"]), _strings(h5["split"])
+        cameras = _cameras_from(_strings(h5["camera_model"]), h5["camera_size"][()], h5["camera_params"][()])
+        R, t = h5["R_world_to_cam"][()], h5["t_world_to_cam"][()]
+        has_poses = bool(h5.attrs["has_poses"])
+        pose_source = str(h5.attrs.get("pose_source", "given"))
+        scale = float(h5.attrs["metric_scale"])
+        name = str(h5.attrs["name"])
+    frames = []
+    for i, fname in enumerate(names):
+        frames.append(Frame(
+            name=fname, image_path=prepared_dir / IMAGE_DIR / fname, camera=cameras[i], split=splits[i],
+            R=R[i] if has_poses else None, t=t[i] if has_poses else None,
+        ))
+    return Scene(name=name, frames=frames, metric_scale=None if np.isnan(scale) else scale, root=prepared_dir,
+                 pose_source=pose_source)
+
+
+def read_source_cameras(prepared_dir: Path) -> list[Camera] | None:
+    """The imported (distorted, full-size) camera of every frame, or None for older files."""
+    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
+        if "source_camera_model" not in h5:
+            return None
+        return _cameras_from(_strings(h5["source_camera_model"]), h5["source_camera_size"][()],
+                             h5["source_camera_params"][()])
+
+
+def read_depth(prepared_dir: Path, index: int) -> np.ndarray | None:
+    """Depth of frame `index` in scene units at working resolution, if the scene has depth."""
+    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
+        if "depth" not in h5 or str(index) not in h5["depth"]:
+            return None
+        return h5["depth"][str(index)][()]

@@ -1,0 +1,191 @@
+"""Score estimated query poses against a scene's ground truth, per query and in summary.
+
+The summary follows `pose_errors.summarize` (ACE's rules); the per-query rows keep what the
+summary throws away (which query failed, how far off each one was, where its camera is) so
+plots and failure analysis need no second pass over the inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from usvc.core.errors import UsvcError
+from usvc.core.geometry import camera_centers
+from usvc.core.h5io import read_h5
+from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error
+from usvc.core.scene import Scene
+
+PER_QUERY_COLUMNS: tuple[str, ...] = (
+    "name", "rot_deg", "trans", "trans_cm", "failed", "inliers",
+    "gt_x", "gt_y", "gt_z", "est_x", "est_y", "est_z",
+)
+
+
+@dataclass(frozen=True)
+class QueryStats:
+    """What the relocalize stage reports for one query besides its pose."""
+
+    inliers: int
+    seconds: float | None  # total time for this query (None: not recorded in queries.h5)
+    success: bool
+
+
+def read_query_stats(path: Path | str) -> dict[str, QueryStats]:
+    """Read `queries.h5` (datasets name, inliers, success; seconds when recorded) into {name: QueryStats}."""
+    path = Path(path)
+    if not path.is_file():
+        raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
+    with read_h5(path, "query statistics") as h5:
+        missing = [k for k in ("name", "inliers", "success") if k not in h5]
+        if missing:
+            raise UsvcError(f"{path}: missing dataset(s) {missing}")
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
+        inliers, success = h5["inliers"][()], h5["success"][()]
+        seconds = h5["seconds"][()] if "seconds" in h5 else [None] * len(names)
+    if not (len(names) == len(inliers) == len(seconds) == len(success)):
+        raise UsvcError(f"{path}: datasets name/inliers/seconds/success differ in length "
+                        f"({len(names)}, {len(inliers)}, {len(seconds)}, {len(success)})")
+    if len(set(names)) != len(names):
+        raise UsvcError(f"{path}: duplicate query names")
+    return {n: QueryStats(int(i), None if s is None else float(s), bool(ok))
+            for n, i, s, ok in zip(names, inliers, seconds, success)}
+
+
+def _check_names(kind: str, names: Any, queries: set[str], scene: str) -> None:
+    unknown = sorted(set(names) - queries)
+    if unknown:
+        more = f" (and {len(unknown) - 1} more)" if len(unknown) > 1 else ""
+        raise UsvcError(f"{kind} has a pose for {unknown[0]!r}{more}, which is not a test query of scene {scene!r}")
+
+
+def evaluate_poses(
+    scene: Scene,
+    estimates: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    query_stats: Mapping[str, QueryStats],
+    median_depth: float | None,
+) -> tuple[dict[str, float | int | None], list[dict[str, Any]]]:
+    """(summary, per-query rows) for the scene's test split.
+
+    A query is failed when it has no estimate or its stats say the solver did not succeed;
+    `summarize` then counts it as infinitely wrong. Its row still carries the real errors of
+    any pose it got, so a near-miss is visible. ms_per_query is the mean of every reported
+    query's time, failures included, since a user waits for those too.
+    """
+    queries = scene.split("test")
+    if not scene.has_poses:
+        raise UsvcError(f"scene {scene.name!r} has no ground-truth poses to evaluate against")
+    names = {f.name for f in queries}
+    _check_names("poses file", estimates, names, scene.name)
+    _check_names("query statistics", query_stats, names, scene.name)
+    if not query_stats:
+        raise UsvcError(f"no query statistics for scene {scene.name!r}: cannot report time per query")
+
+    R_gt = np.stack([f.R for f in queries])
+    t_gt = np.stack([f.t for f in queries])
+    R_est = np.stack([estimates[f.name][0] if f.name in estimates else np.eye(3) for f in queries])
+    t_est = np.stack([estimates[f.name][1] if f.name in estimates else np.zeros(3) for f in queries])
+    has_est = np.array([f.name in estimates for f in queries])
+    rot = np.where(has_est, rotation_error_deg(R_est, R_gt), np.nan)
+    trans = np.where(has_est, translation_error(R_est, t_est, R_gt, t_gt), np.nan)
+    stats = [query_stats.get(f.name) for f in queries]
+    failed = ~has_est | np.array([s is not None and not s.success for s in stats])
+
+    times = [s.seconds for s in query_stats.values()]
+    summary = summarize(rot, trans, scene.metric_scale, median_depth, failed,
+                        ms_per_query=None if None in times else 1000.0 * float(np.mean(times)))
+    summary["median_depth"] = median_depth
+    summary["mean_inliers"] = float(np.mean([0 if s is None else s.inliers for s in stats]))
+
+    gt_c = camera_centers(R_gt, t_gt)
+    est_c = np.where(has_est[:, None], camera_centers(R_est, t_est), np.nan)
+    scale = scene.metric_scale
+    rows = [
+        {"name": f.name, "rot_deg": float(rot[i]), "trans": float(trans[i]),
+         "trans_cm": float(trans[i]) * scale * 100.0 if scale is not None else math.nan,
+         "failed": bool(failed[i]), "inliers": 0 if stats[i] is None else stats[i].inliers,
+         **{f"gt_{a}": float(gt_c[i, k]) for k, a in enumerate("xyz")},
+         **{f"est_{a}": float(est_c[i, k]) for k, a in enumerate("xyz")}}
+        for i, f in enumerate(queries)
+    ]
+    return summary, rows
+
+
+REFINEMENT_DATASETS: tuple[str, ...] = ("initial_R", "initial_t", "refine_iterations", "refine_kept")
+
+
+@dataclass(frozen=True)
+class RefinementRecords:
+    """Per-query refinement records of `queries.h5`: the dense pose before refinement and what it did."""
+
+    names: list[str]
+    success: np.ndarray  # (Q,) bool
+    initial_R: np.ndarray  # (Q,3,3), NaN for failed queries
+    initial_t: np.ndarray  # (Q,3)
+    iterations: np.ndarray  # (Q,) int
+    kept: np.ndarray  # (Q,) bool
+
+
+def read_refinement_records(path: Path | str) -> RefinementRecords | None:
+    """The refinement datasets of `queries.h5`, or None for a file written before refinement existed."""
+    path = Path(path)
+    if not path.is_file():
+        raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
+    with read_h5(path, "query statistics") as h5:
+        present = [k for k in REFINEMENT_DATASETS if k in h5]
+        if not present:
+            return None
+        missing = [k for k in ("name", "success", *REFINEMENT_DATASETS) if k not in h5]
+        if missing:
+            raise UsvcError(f"{path}: has refinement records but lacks dataset(s) {missing}")
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
+        rec = RefinementRecords(names, np.asarray(h5["success"][()], bool),
+                                np.asarray(h5["initial_R"][()], np.float64),
+                                np.asarray(h5["initial_t"][()], np.float64),
+                                np.asarray(h5["refine_iterations"][()], np.int64),
+                                np.asarray(h5["refine_kept"][()], bool))
+    q = len(names)
+    shapes = {"success": (rec.success.shape, (q,)), "initial_R": (rec.initial_R.shape, (q, 3, 3)),
+              "initial_t": (rec.initial_t.shape, (q, 3)), "refine_iterations": (rec.iterations.shape, (q,)),
+              "refine_kept": (rec.kept.shape, (q,))}
+    for key, (got, want) in shapes.items():
+        if got != want:
+            raise UsvcError(f"{path}: dataset {key} has shape {got}, expected {want} for {q} queries")
+    return rec
+
+
+def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[int] | np.ndarray) -> dict[str, float]:
+    """refine_kept_fraction and refine_mean_iterations over the given (successful) queries; 0 if none."""
+    return {"refine_kept_fraction": float(np.mean(kept)) if len(kept) else 0.0,
+            "refine_mean_iterations": float(np.mean(iterations)) if len(iterations) else 0.0}
+
+
+def _is_headline(key: str, value: object) -> bool:
+    """Accuracy and median-error figures with a number: what differs between initial and refined poses."""
+    numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return numeric and (key.startswith("acc_") or (key.startswith("median_") and key != "median_depth"))
+
+
+def evaluate_initial_poses(
+    scene: Scene,
+    records: RefinementRecords,
+    query_stats: Mapping[str, QueryStats],
+    median_depth: float | None,
+) -> dict[str, float | int]:
+    """Headline figures of the pre-refinement poses, prefixed "initial_", plus the refinement rates.
+
+    Scored by `evaluate_poses` against the same queries and failures as the returned poses, so
+    `acc_5cm_5deg` vs `initial_acc_5cm_5deg` is the refinement on/off ablation from one run.
+    """
+    ok = records.success & np.isfinite(records.initial_R).all(axis=(1, 2)) & np.isfinite(records.initial_t).all(axis=1)
+    estimates = {n: (records.initial_R[i], records.initial_t[i]) for i, n in enumerate(records.names) if ok[i]}
+    summary, _ = evaluate_poses(scene, estimates, query_stats, median_depth)
+    out: dict[str, float | int] = {f"initial_{k}": v for k, v in summary.items()
+                                   if v is not None and _is_headline(k, v)}
+    out.update(refinement_summary(records.kept[records.success], records.iterations[records.success]))
+    return out

@@ -1,0 +1,143 @@
+"""Import a scene, undistort every image to a PINHOLE camera, and resize it to the working width.
+
+Undistortion happens here, once, at the source resolution (``usvc.core.undistort``), before resizing:
+every later stage (SfM, buffer, Gaussian splatting, relocalization, metrics) sees pinhole images
+only. Poses are unchanged by undistortion, so metrics still score against the imported poses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from usvc.core.errors import SceneError
+from usvc.core.exif import read_image_bgr
+from usvc.core.scene import Frame, Scene
+from usvc.core.scene_io import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
+from usvc.core.undistort import undistort
+from usvc.sfm.posing import pose_scene
+from usvc.sfm.sfm import MIN_MAPPING_IMAGES, SfmOptions
+
+log = logging.getLogger(__name__)
+
+
+def working_size(width: int, height: int, working_width: int) -> tuple[int, int]:
+    """Size after resizing to `working_width` (0 keeps it), preserving the aspect ratio."""
+    if working_width == 0 or working_width == width:
+        return width, height
+    return working_width, max(1, round(height * working_width / width))
+
+
+def _read_depth(frame: Frame) -> np.ndarray | None:
+    if frame.depth_path is None or not Path(frame.depth_path).is_file():
+        return None
+    raw = cv2.imread(str(frame.depth_path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SceneError(f"cannot read depth map {frame.depth_path}")
+    return raw.astype(np.float32) * np.float32(frame.depth_scale)
+
+
+def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop",
+                  sfm: SfmOptions | None = None) -> dict:
+    """Write undistorted, resized images and scene.h5 into `out_dir` (which must be empty).
+
+    `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
+    :mod:`usvc.core.undistort`. A scene without poses is first posed by SfM (:mod:`usvc.sfm.posing`,
+    options `sfm`) on its photos at working resolution, then undistorted with the calibrated
+    cameras. Returns summary figures for the stage's metrics file.
+    """
+    if not scene.has_poses:
+        return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm)
+    return _write_prepared(scene, out_dir, working_width, undistort_fov)
+
+
+def check_distinct_mapping_images(scene: str, contents: dict[str, list[str]]) -> None:
+    """Copies of one photo carry no geometry (SfM would triangulate noise between them): refuse a
+    scene that is mostly copies, warn about a few."""
+    copies = [names for names in contents.values() if len(names) > 1]
+    if not copies:
+        return
+    n_images = sum(len(names) for names in contents.values())
+    example = ", ".join(max(copies, key=len)[:3])
+    if len(contents) < MIN_MAPPING_IMAGES or len(contents) < n_images / 2:
+        raise SceneError(f"scene {scene!r}: only {len(contents)} of {n_images} mapping images differ; the rest are "
+                         f"pixel-identical copies (e.g. {example}): SfM and the map need photos from different "
+                         "viewpoints")
+    log.warning("scene %r: %d mapping images are pixel-identical copies of others (e.g. %s)", scene,
+                sum(len(n) - 1 for n in copies), example)
+
+
+def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str) -> dict:
+    """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth)."""
+    scene.split("train")
+    scene.split("test")
+    out_frames: list[Frame] = []
+    depths: list[np.ndarray | None] = []
+    contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels
+    for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
+        image, camera = undistort(read_image_bgr(frame.image_path), frame.camera, undistort_fov,
+                                  where=str(frame.image_path))
+        depth = _read_depth(frame)
+        if depth is not None and frame.camera.has_distortion:
+            depth = cv2.resize(depth, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)
+            depth, _ = undistort(depth, frame.camera, undistort_fov, where=str(frame.depth_path), nearest=True)
+        h, w = image.shape[:2]
+        ww, wh = working_size(w, h, working_width)
+        if (ww, wh) != (w, h):
+            image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
+        dst = out_dir / IMAGE_DIR / frame.name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
+        if not cv2.imwrite(str(dst), image, params):
+            raise SceneError(f"cannot write image {dst}")
+        if depth is not None and depth.shape[:2] != (wh, ww):
+            depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
+        depths.append(depth)
+        out_frames.append(replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None))
+        if frame.split == "train":
+            contents.setdefault(hashlib.sha1(image.tobytes()).hexdigest(), []).append(frame.name)
+    check_distinct_mapping_images(scene.name, contents)
+    prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
+    write_scene_h5(out_dir / SCENE_FILE, prepared, depths, source_cameras=[f.camera for f in scene.frames])
+    n_train = len(prepared.split("train"))
+    stats = {
+        "frames": len(out_frames),
+        "train": n_train,
+        "test": len(out_frames) - n_train,
+        "width": out_frames[0].camera.width,
+        "height": out_frames[0].camera.height,
+        "has_depth": any(d is not None for d in depths),
+        "undistorted": sum(f.camera.has_distortion for f in scene.frames),
+        "source_camera_models": sorted({f.camera.model for f in scene.frames}),
+        "undistort_fov": undistort_fov,
+    }
+    log.info("prepared %s: %s", scene.name, stats)
+    return stats
+
+
+def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
+                     sfm: SfmOptions | None) -> dict:
+    if sfm is None:
+        raise SceneError(f"scene {scene.name!r} has no poses: preparing it needs SfM options")
+    with tempfile.TemporaryDirectory(prefix="usvc-posing-") as work:
+        resized_dir = Path(work) / "resized"
+        resized_dir.mkdir()
+        _write_prepared(scene, resized_dir, working_width, undistort_fov)
+        resized = read_scene_h5(resized_dir)
+        # SfM calibrates the importer's camera model (SIMPLE_RADIAL): keep it, at working size
+        source = {f.name: f for f in scene.frames}
+        resized = replace(resized, frames=[
+            replace(f, camera=source[f.name].camera.scaled(f.camera.width, f.camera.height),
+                    focal_known=source[f.name].focal_known) for f in resized.frames])
+        posed, missing = pose_scene(resized, resized_dir / IMAGE_DIR, Path(work), sfm)
+        stats = _write_prepared(posed, out_dir, 0, undistort_fov)
+    cams = sorted({f.camera for f in posed.frames}, key=lambda c: c.params)
+    return {**stats, "pose_source": "sfm", "unposed": missing, "photos": len(scene.frames),
+            "sfm_cameras": [{"model": c.model, "params": [round(v, 6) for v in c.params]} for c in cams]}

@@ -1,0 +1,323 @@
+"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose,
+then keypoint-guided refinement (paper §3.2.2) when the map carries 3D keypoints.
+
+This is the one implementation behind the relocalize stage, the Python API and `usvc localize`,
+so benchmark numbers and real use cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from usvc.core.errors import UsvcError
+from usvc.core.exif import read_image_bgr
+from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
+from usvc.core.scene import Camera
+from usvc.core.undistort import undistort
+from usvc.model.encoder import cell_centers
+from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
+from usvc.model.preprocess import luma01, normalise, resize_to_short_side
+from usvc.relocalize.pnp import BACKENDS, estimate_focal, solve_pnp
+from usvc.relocalize.refinement import RefineOptions, refine_pose
+from usvc.weights import WEIGHTS_DIR, load_configured_encoder
+
+log = logging.getLogger(__name__)
+
+MIN_IMAGE_SIDE = 32
+MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
+
+Intrinsics = float | Sequence[float] | np.ndarray | Camera
+CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
+
+
+@dataclass(frozen=True)
+class RelocalizeOptions:
+    backend: str = "opencv"
+    max_error_px: float = 10.0  # RANSAC inlier threshold in pixels of an image with a 480 px short side
+    reference_short_side: int = 480  # ACE's working short side, where its 10 px threshold was tuned
+    min_inliers: int = 10
+    # Calibrated in docs/confidence.md; conf/relocalize/default.yaml holds the same values (a test checks).
+    min_confidence: float = 0.1  # answers whose inlier fraction is lower are reported as failures
+    focal_tolerance: float = 0.25  # given focal vs one estimated from the map (P4Pf): a larger relative gap fails; 0 = off
+    seed: int = 0
+    refine: bool = True  # keypoint-guided refinement (paper 3.2.2); skipped for maps without keypoints
+    refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
+    refine_max_iterations: int = 5  # T_max
+    refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median depth < delta
+    refine_min_correspondences: int = 20  # fewer masked cells than this: stop refining
+
+    def __post_init__(self) -> None:
+        """Refuse bad values as given (before any rescaling), naming the option."""
+        if self.backend not in BACKENDS:
+            raise UsvcError(f"relocalize option backend={self.backend!r} is not one of {list(BACKENDS)}")
+        for name in ("max_error_px", "reference_short_side", "min_inliers", "refine_radius_px",
+                     "refine_max_iterations", "refine_delta", "refine_min_correspondences"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise UsvcError(f"relocalize option {name}={value!r} must be > 0")
+        if not 0 <= self.min_confidence <= 1:
+            raise UsvcError(f"relocalize option min_confidence={self.min_confidence!r} must be in [0, 1]")
+        if not self.focal_tolerance >= 0:
+            raise UsvcError(f"relocalize option focal_tolerance={self.focal_tolerance!r} must be >= 0 (0: no check)")
+
+    def refine_options(self) -> RefineOptions:
+        return RefineOptions(radius_px=self.refine_radius_px, max_iterations=self.refine_max_iterations,
+                             delta=self.refine_delta, min_correspondences=self.refine_min_correspondences)
+
+
+def _nan_R() -> np.ndarray:
+    return np.full((3, 3), np.nan)
+
+
+def _nan_t() -> np.ndarray:
+    return np.full(3, np.nan)
+
+
+@dataclass
+class PoseEstimate:
+    """World-to-camera pose (OpenCV axes, scene units); R and t are NaN when `success` is False.
+
+    `inliers` is the dense RANSAC inlier count of the returned pose; `initial_R`/`initial_t` are
+    the dense RANSAC pose before refinement (equal to R, t when refinement did not replace it).
+    `camera` is the camera of the photo as given: the one passed in, or, when the intrinsics were
+    unknown, a SIMPLE_PINHOLE with the focal length estimated with the pose.
+    """
+
+    success: bool
+    R: np.ndarray
+    t: np.ndarray
+    inliers: int
+    cells: int
+    seconds: dict[str, float] = field(default_factory=dict)
+    initial_R: np.ndarray = field(default_factory=_nan_R)
+    initial_t: np.ndarray = field(default_factory=_nan_t)
+    refine_iterations: int = 0
+    refine_kept: bool = False
+    camera: Camera | None = None
+    focal_estimated: bool = False
+    rejected: str = ""  # why a pose RANSAC found is not trusted (low confidence, or intrinsics the map contradicts)
+
+    @property
+    def confidence(self) -> float:
+        """Fraction of the image's cells that agree with the pose RANSAC found (0 when it found none)."""
+        return self.inliers / self.cells if (self.success or self.rejected) and self.cells else 0.0
+
+    @property
+    def center(self) -> np.ndarray:
+        return camera_centers(self.R, self.t)
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"success": self.success, "inliers": self.inliers, "cells": self.cells,
+                               "confidence": round(self.confidence, 4),
+                               "seconds": {k: round(v, 4) for k, v in self.seconds.items()}}
+        if self.success:
+            out["q_wxyz"] = [float(v) for v in matrix_to_quat_wxyz(self.R)]
+            out["t"] = [float(v) for v in self.t]
+            out["camera_center"] = [float(v) for v in self.center]
+            out["refinement"] = {"iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
+                                 "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)],
+                                 "initial_t": [float(v) for v in self.initial_t]}
+        if self.rejected:
+            out["rejected"] = self.rejected
+        if self.camera is not None:
+            c = self.camera
+            out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
+                             "params": [float(v) for v in c.params], "focal_estimated": self.focal_estimated}
+        return out
+
+
+def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Camera:
+    """A focal (principal point at the image centre), (fx, fy, cx, cy), a 3x3 K or a Camera of
+    any supported COLMAP model (with distortion)."""
+    if isinstance(intrinsics, Camera):
+        cam = intrinsics
+        if (cam.width, cam.height) != (width, height):
+            raise UsvcError(f"the camera is {cam.width}x{cam.height} but the image is {width}x{height}")
+        return cam
+    if isinstance(intrinsics, (dict, str, bytes)):
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
+                        f"got a {type(intrinsics).__name__}")
+    try:
+        arr = np.asarray(intrinsics, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
+                        f"got {type(intrinsics).__name__} {intrinsics!r:.80}") from None
+    if arr.size == 1:
+        fx = fy = float(arr.reshape(-1)[0])
+        cx, cy = width / 2, height / 2
+    elif arr.shape == (4,):
+        fx, fy, cx, cy = (float(v) for v in arr)
+    elif arr.shape == (3, 3):
+        fx, fy, cx, cy = float(arr[0, 0]), float(arr[1, 1]), float(arr[0, 2]), float(arr[1, 2])
+    else:
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy) or a 3x3 K, got shape {arr.shape}")
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise UsvcError(f"intrinsics must be finite with positive focal lengths, got fx={fx}, fy={fy}")
+    if not (0 < cx < width and 0 < cy < height):
+        raise UsvcError(f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image: "
+                        "wrong image size for these intrinsics?")
+    return Camera("PINHOLE", width, height, (fx, fy, cx, cy))
+
+
+def _as_gray(image: np.ndarray | str | Path, channels: str = "rgb") -> np.ndarray:
+    """Path or uint8 RGB/BGR/grey array -> float luma in [0, 1]."""
+    if channels not in ("rgb", "bgr"):
+        raise UsvcError(f"channels={channels!r} must be 'rgb' (PIL, imageio) or 'bgr' (cv2.imread)")
+    if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
+        return luma01(read_image_bgr(image), rgb=False)
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+        raise UsvcError(f"image must be a uint8 HxW or HxWx3 RGB array, got {arr.dtype} {arr.shape}")
+    return luma01(arr, rgb=channels == "rgb")
+
+
+def _check_device(device: str) -> str:
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise UsvcError(f"device={device!r} is not a torch device (e.g. 'cpu', 'cuda', 'cuda:1')") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UsvcError(f"device={device!r}: CUDA is not available on this machine (use device='cpu')")
+    if dev.type not in ("cpu", "cuda"):
+        raise UsvcError(f"device={device!r}: usvc runs on 'cpu' or 'cuda'")
+    return device
+
+
+class Relocalizer:
+    """A loaded map (head + its encoder), ready to localize photos of that scene."""
+
+    def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
+                 options: RelocalizeOptions | None = None, device: str = "cpu") -> None:
+        if not isinstance(map_path, (str, Path)):
+            raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
+        device = _check_device(device)
+        self.options = options or RelocalizeOptions()
+        header = read_map_header(map_path)
+        width = float(header["encoder"].get("width", 1.0))
+        kind = str(header["encoder"].get("kind", "ace"))
+        if encoder_weights is None:  # the shipped file the map was trained with (e.g. model=small_real)
+            recorded = header["metadata"].get("encoder_file")
+            if isinstance(recorded, str) and kind == "ace" and (WEIGHTS_DIR / Path(recorded).name).is_file():
+                encoder_weights = WEIGHTS_DIR / Path(recorded).name
+        encoder, _ = load_configured_encoder(width, encoder_weights, kind)
+        self.regressor: Regressor
+        self.regressor, self.metadata = load_map(map_path, encoder)
+        self.regressor.to(device).eval()
+        self.device = device
+        self.short_side = int(self.metadata.get("short_side", 0)) or None
+        self.map_path = Path(map_path)
+        self.keypoints_xyz = map_keypoints(header)
+        depth = self.metadata.get("median_depth")
+        self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
+            else 1.0
+        self.refine_options = self.options.refine_options()
+        self.refine = self.options.refine and self.keypoints_xyz is not None
+        if self.options.refine and self.keypoints_xyz is None:
+            log.warning("map %s has no 3D keypoints: keypoint-guided refinement is skipped", self.map_path)
+
+    def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
+        """The image at the map's working short side, as its head was trained, and the resize factor."""
+        if self.short_side and min(gray01.shape) != self.short_side:
+            return resize_to_short_side(gray01, self.short_side)
+        return gray01, 1.0
+
+    @torch.inference_mode()
+    def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
+        """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
+        out = self.regressor(normalise(gray01).to(self.device))[0]
+        return out.permute(1, 2, 0).double().cpu().numpy()
+
+    def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float) -> str:
+        """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
+        imply another one. A wrong focal length can still explain most cells with a wrong pose
+        (a shallow view trades focal length for distance), so confidence alone cannot catch it."""
+        estimate = estimate_focal(pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
+                                  self.options.seed)
+        if estimate is None:
+            return ""  # no opinion: nothing to hold against the given focal length
+        given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
+        ratio = estimate.params[0] / given
+        if abs(np.log(ratio)) <= np.log1p(self.options.focal_tolerance):
+            return ""
+        return (f"the image implies a focal length {ratio:.2f}x the given one "
+                f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")
+
+    def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None, *,
+                 channels: str = "rgb") -> PoseEstimate:
+        """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
+        (principal point at the image centre, no distortion); a distorted Camera is undistorted
+        first, exactly as the prepare stage undistorts mapping images.
+
+        An array is uint8, HxW grey or HxWx3 in RGB order (``channels="rgb"``, as PIL and imageio
+        give it) or BGR (``channels="bgr"``, as ``cv2.imread`` gives it); a path is read with its
+        EXIF orientation applied."""
+        t0 = time.perf_counter()
+        gray = _as_gray(image, channels)
+        h, w = gray.shape
+        if min(h, w) < MIN_IMAGE_SIDE:
+            raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
+        if max(h, w) > MAX_ASPECT * min(h, w):
+            raise UsvcError(f"image is {w}x{h}, an aspect ratio of {max(h, w) / min(h, w):.1f}:1; usvc localizes "
+                            f"photos up to {MAX_ASPECT}:1 (a strip or panorama is not a camera view it can map)")
+        given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
+        camera = None
+        if given is not None:
+            gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
+        gray, resize = self.working_image(gray)
+        if resize != 1.0 and camera is not None:
+            camera = camera.scaled(gray.shape[1], gray.shape[0])
+        t1 = time.perf_counter()
+        coords = self.scene_coordinates(gray)
+        t2 = time.perf_counter()
+        hc, wc = coords.shape[:2]
+        # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
+        threshold = self.options.max_error_px * min(gray.shape) / self.options.reference_short_side
+        pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+        if camera is None:
+            camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
+                                    self.options.seed)
+            if camera is not None:
+                f = camera.params[0] / resize
+                given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
+        if camera is None:
+            t3 = time.perf_counter()
+            seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
+            return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True)
+        result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
+                           seed=self.options.seed, min_inliers=self.options.min_inliers,
+                           backend=self.options.backend)
+        rejected = ""
+        if result.success and intrinsics is not None and self.options.focal_tolerance > 0:
+            rejected = self._focal_disagreement(pixels, coords, camera, threshold)
+        t3 = time.perf_counter()
+        R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
+        if result.success and self.refine and not rejected:
+            assert self.keypoints_xyz is not None
+            ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
+                              max_error_px=threshold, median_depth=self.median_depth,
+                              options=self.refine_options, backend=self.options.backend,
+                              seed=self.options.seed, min_inliers=self.options.min_inliers)
+            iterations, kept = ref.iterations, ref.kept
+            if kept:
+                R, t, inliers = ref.R, ref.t, ref.final_inliers
+        t4 = time.perf_counter()
+        seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
+                   "total": t4 - t0}
+        if result.success and not rejected and inliers < self.options.min_confidence * hc * wc:
+            # a pose, but one that too few cells agree with: wrong answers look like this
+            rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
+        success = result.success and not rejected
+        if not success:
+            R, t = _nan_R(), _nan_t()
+        return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
+                            initial_R=result.R.copy() if success else _nan_R(),
+                            initial_t=result.t.copy() if success else _nan_t(), refine_iterations=iterations,
+                            refine_kept=kept, camera=given, focal_estimated=intrinsics is None, rejected=rejected)

@@ -1,0 +1,263 @@
+"""Sparse reconstruction of the mapping images with pycolmap.
+
+Known poses are held fixed and only points are triangulated (COLMAP's point_triangulator);
+without poses a full incremental reconstruction runs instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from usvc.core.errors import SfmError
+from usvc.core.scene import Frame
+from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
+
+log = logging.getLogger(__name__)
+
+# Pose-guided pairs only between cameras whose viewing directions differ by less than this.
+_PAIR_MAX_ANGLE_DEG = 60.0
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    max_num_features: int
+    matching: str
+    exhaustive_max_images: int
+    sequential_overlap: int
+    pose_pairs_per_image: int
+    reconstruction: str
+    min_points: int
+    num_threads: int
+    seed: int
+
+
+MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
+
+
+def colmap_threads(opts: SfmOptions) -> int:
+    """Feature extraction threads: sfm.num_threads when set (> 0), else the process's `threads`
+    setting (COLMAP's -1: all cores). Matching always runs on one thread (see matching_kwargs)."""
+    from usvc.pipeline import threads
+
+    return opts.num_threads if opts.num_threads > 0 else (threads.applied or -1)
+
+
+def _camera_key(frame: Frame) -> tuple:
+    c = frame.camera
+    return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
+
+
+def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
+    """Cameras, rigs, frames and images in name order, so image ids (which orient every pair in
+    geometric verification) do not depend on which extraction thread finishes first."""
+    camera_ids: dict[tuple, int] = {}
+    # A camera's focal length is a prior (verify with essential matrices, refine in BA) unless
+    # some photo of it had to guess one (no EXIF): then COLMAP estimates it.
+    known: dict[tuple, bool] = defaultdict(lambda: True)
+    for f in frames:
+        known[_camera_key(f)] &= f.focal_known
+    db = pycolmap.Database.open(db_path)
+    try:
+        for k, f in enumerate(sorted(frames, key=lambda f: f.name), start=1):
+            key = _camera_key(f)
+            if key not in camera_ids:
+                cid = len(camera_ids) + 1
+                c = f.camera
+                cam = pycolmap.Camera(model=c.model, width=c.width, height=c.height, params=list(c.params),
+                                      camera_id=cid)
+                cam.has_prior_focal_length = known[key]
+                db.write_camera(cam, use_camera_id=True)
+                rig = pycolmap.Rig()
+                rig.rig_id = cid
+                rig.add_ref_sensor(cam.sensor_id)
+                db.write_rig(rig, use_rig_id=True)
+                camera_ids[key] = cid
+            image = pycolmap.Image(name=f.name, camera_id=camera_ids[key], image_id=k)
+            db.write_image(image, use_image_id=True)
+            frame = pycolmap.Frame()
+            frame.frame_id, frame.rig_id = k, camera_ids[key]
+            frame.add_data_id(image.data_id)
+            db.write_frame(frame, use_frame_id=True)
+    finally:
+        db.close()
+    return camera_ids
+
+
+def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions) -> None:
+    """SIFT into a fresh database whose cameras are the scene's exact intrinsics."""
+    camera_ids = _register_images(frames, db_path)
+    groups: dict[int, list[str]] = defaultdict(list)
+    for f in frames:
+        groups[camera_ids[_camera_key(f)]].append(f.name)
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = opts.max_num_features
+    eo.num_threads = colmap_threads(opts)
+    eo.use_gpu = False
+    for cid, names in groups.items():
+        ro = pycolmap.ImageReaderOptions()
+        ro.existing_camera_id = cid
+        pycolmap.extract_features(
+            db_path, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu,
+        )
+
+
+def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
+    """Each image with its k nearest cameras (by centre) that look roughly the same way."""
+    centers = np.stack([f.center for f in frames])
+    dirs = np.stack([f.R[2] for f in frames])  # optical axis in world coordinates
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    cos = np.clip(dirs @ dirs.T, -1, 1)
+    dist[np.degrees(np.arccos(cos)) > _PAIR_MAX_ANGLE_DEG] = np.inf
+    np.fill_diagonal(dist, np.inf)
+    pairs: set[tuple[str, str]] = set()
+    for i in range(len(frames)):
+        for j in np.argsort(dist[i])[:k]:
+            if np.isfinite(dist[i, j]):
+                a, b = sorted((frames[i].name, frames[j].name))
+                pairs.add((a, b))
+    return sorted(pairs)
+
+
+def matching_kwargs(opts: SfmOptions) -> dict:
+    """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU)."""
+    mo = pycolmap.FeatureMatchingOptions()
+    # One thread: threaded matching and verification gave a few points more or fewer between
+    # identical runs (3,214-3,235 of 3,235 on a 24-image scene, rarely). Threads gain little
+    # here (office: 5.7 s against 7.2 s); extraction, per image, keeps its threads.
+    mo.num_threads = 1
+    mo.use_gpu = False
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run
+    return dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+
+
+def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool) -> str:
+    """Match with the configured strategy; `auto` is exhaustive for small scenes."""
+    mode = opts.matching
+    if mode == "auto":
+        if len(frames) <= opts.exhaustive_max_images:
+            mode = "exhaustive"
+        else:
+            mode = "poses" if has_poses else "sequential"
+    if mode == "poses" and not has_poses:
+        raise SfmError("sfm.matching=poses needs a scene with poses")
+    common = matching_kwargs(opts)
+    if mode == "exhaustive":
+        pycolmap.match_exhaustive(db_path, **common)
+    elif mode == "sequential":
+        po = pycolmap.SequentialPairingOptions()
+        po.overlap = opts.sequential_overlap
+        pycolmap.match_sequential(db_path, pairing_options=po, **common)
+    else:
+        pairs_file = work_dir / "pairs.txt"
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pose_pairs(frames, opts.pose_pairs_per_image)))
+        po = pycolmap.ImportedPairingOptions()
+        po.match_list_path = pairs_file
+        pycolmap.match_image_pairs(db_path, pairing_options=po, **common)
+    return mode
+
+
+def _pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
+    """Mapper and triangulator options with every RANSAC seeded, so reruns give the same model."""
+    po = pycolmap.IncrementalPipelineOptions()
+    po.random_seed = opts.seed
+    po.mapper.random_seed = opts.seed
+    po.triangulation.random_seed = opts.seed
+    # Threaded bundle adjustment sums residuals in varying order; the resulting float noise
+    # flips point filtering at thresholds. Triangulation with fixed poses takes seconds anyway.
+    po.num_threads = 1
+    po.mapper.num_threads = 1
+    return po
+
+
+def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
+    """An empty model whose image ids are the database's and whose poses are the given ones
+    (only the database images among ``frames`` enter it)."""
+    by_name = {f.name: f for f in frames}
+    db = pycolmap.Database.open(db_path)
+    try:
+        rec = pycolmap.Reconstruction()
+        for cam in db.read_all_cameras():
+            rec.add_camera_with_trivial_rig(cam)
+        for im in db.read_all_images():
+            if im.name not in by_name:  # e.g. queries whose features share the database
+                continue
+            f = by_name[im.name]
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(f.R), f.t)
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id), pose
+            )
+    finally:
+        db.close()
+    return rec
+
+
+def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int) -> None:
+    """Bring a free reconstruction into the scene's frame (similarity on camera centres)."""
+    centers = np.stack([f.center for f in frames])
+    spread = float(np.median(np.linalg.norm(centers - centers.mean(0), axis=1)))
+    ro = pycolmap.RANSACOptions()
+    ro.max_error = 0.05 * max(spread, 1e-9)
+    ro.random_seed = seed
+    sim = pycolmap.align_reconstruction_to_locations(rec, [f.name for f in frames], centers, 3, ro)
+    if sim is None:
+        raise SfmError("could not align the incremental reconstruction to the given camera centres")
+    rec.transform(sim)
+
+
+def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
+                has_poses: bool) -> tuple[pycolmap.Reconstruction, dict]:
+    """Extract, match and triangulate (or map); returns the model and timing/strategy stats."""
+    if len(frames) < MIN_MAPPING_IMAGES:
+        raise SfmError(
+            f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}: COLMAP keeps only points "
+            "seen in 3 or more images (tracks of two views are dropped), and a usable map wants dozens")
+    db_path = work_dir / "database.db"
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    extract(frames, image_dir, db_path, opts)
+    timings["extract_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    strategy = match(frames, db_path, work_dir, opts, has_poses)
+    timings["match_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mode = opts.reconstruction
+    if mode == "auto":
+        mode = "triangulate" if has_poses else "incremental"
+    if mode == "triangulate" and not has_poses:
+        raise SfmError("sfm.reconstruction=triangulate needs a scene with poses")
+    agreement = {}
+    if has_poses:
+        agreement = pose_agreement(db_path, frames)
+        warn_if_poses_disagree(agreement)
+    model_dir = work_dir / "colmap_work"
+    model_dir.mkdir(exist_ok=True)
+    po = _pipeline_options(opts)
+    if mode == "triangulate":
+        rec = pycolmap.triangulate_points(
+            _posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
+            refine_intrinsics=False,
+        )
+    else:
+        models = pycolmap.incremental_mapping(db_path, image_dir, model_dir, options=po)
+        if not models:
+            raise SfmError("incremental mapping registered no images: too few matches")
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+        if has_poses:
+            align_to_poses(rec, frames, opts.seed)
+    timings["reconstruct_s"] = time.perf_counter() - t0
+    if rec.num_points3D() < opts.min_points:
+        raise SfmError(
+            f"SfM triangulated only {rec.num_points3D()} points from {len(frames)} images "
+            f"(sfm.min_points={opts.min_points}): too few matches, a degenerate scene or wrong poses"
+        )
+    return rec, {"matching": strategy, "reconstruction": mode, **timings,
+                 **{f"pose_check_{k}": v for k, v in agreement.items() if k != "worst_images"}}

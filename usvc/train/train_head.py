@@ -1,0 +1,199 @@
+"""Head training on the buffer with ACE's reprojection loss (mapping).
+
+Depth bounds and the invalid-prediction depth are given in units of the scene's median depth,
+so one configuration serves metric scenes and scenes in arbitrary SfM units alike (ACE's
+0.1 m / 10 m / 1000 m at a typical indoor median depth of 2 m are 0.05 / 5 / 500).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from usvc.buffer.build import TrainingBuffer
+from usvc.core.errors import UsvcError
+from usvc.core.geometry import camera_centers
+from usvc.model.head import Head
+from usvc.pipeline.config import TrainConfig
+from usvc.train.adabelief import AdaBelief
+from usvc.train.bundle_loss import FORMS, bundle_loss
+from usvc.train.group_sampler import GroupSampler
+from usvc.train.reprojection_loss import reprojection_loss
+from usvc.train.schedule import circle_threshold
+
+log = logging.getLogger(__name__)
+
+OPTIMIZERS = ("adamw", "adabelief")
+SCHEDULES = ("one_cycle", "constant")
+
+
+@dataclass
+class TrainOptions(TrainConfig):
+    """The `train` config group (one schema, in usvc/pipeline/config.py) plus what comes from elsewhere."""
+
+    head_width: int = 512  # model.head_width
+    head_blocks: int = 1  # model.head_blocks
+    seed: int = 0
+
+
+def validate_options(opts: TrainOptions) -> None:
+    problems = []
+    if opts.optimizer not in OPTIMIZERS:
+        problems.append(f"train.optimizer={opts.optimizer!r} (expected one of {OPTIMIZERS})")
+    if opts.schedule not in SCHEDULES:
+        problems.append(f"train.schedule={opts.schedule!r} (expected one of {SCHEDULES})")
+    if opts.iterations < 1 or opts.batch_size < 1:
+        problems.append("train.iterations and train.batch_size must be >= 1")
+    if opts.bundle_loss not in FORMS:
+        problems.append(f"train.bundle_loss={opts.bundle_loss!r} (expected one of {FORMS})")
+    if opts.bundle_weight < 0 or opts.reproj_weight <= 0:
+        problems.append("train.bundle_weight must be >= 0 and train.reproj_weight > 0")
+    if opts.bundle_groups_per_batch < 1 or opts.bundle_obs_per_group < 1:
+        problems.append("train.bundle_groups_per_batch and train.bundle_obs_per_group must be >= 1")
+    if not 0 < opts.depth_min_rel < opts.invalid_depth_rel < opts.depth_max_rel:
+        problems.append("need 0 < train.depth_min_rel < train.invalid_depth_rel < train.depth_max_rel")
+    if problems:
+        raise UsvcError("invalid training options: " + "; ".join(problems))
+
+
+def mapping_center(buf: TrainingBuffer) -> np.ndarray:
+    """Mean camera centre of the mapping images (ACE's scene centre); rolls keep the centre."""
+    centres = camera_centers(buf.view_R, buf.view_t)
+    _, first = np.unique(buf.view_image, return_index=True)
+    return centres[first].mean(axis=0)
+
+
+def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
+    if opts.optimizer == "adamw":
+        optim: torch.optim.Optimizer = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    else:
+        optim = AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    if opts.schedule == "one_cycle":
+        sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
+                                                    pct_start=opts.warmup_fraction)
+    else:
+        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
+    return optim, sched
+
+
+def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
+               device: str = "cpu") -> tuple[Head, dict[str, Any]]:
+    """Fit a fresh head to the buffer; returns it and training statistics."""
+    validate_options(opts)
+    if not (np.isfinite(median_depth) and median_depth > 0):
+        raise UsvcError(f"training needs a positive median scene depth, got {median_depth}")
+    n = len(buf.features)
+    if n < opts.batch_size:
+        raise UsvcError(f"the buffer has {n} cells, fewer than one batch ({opts.batch_size}); "
+                        "raise buffer.size or lower train.batch_size")
+    sampler = None
+    if opts.bundle_weight > 0:
+        if not buf.has_keypoints:
+            raise UsvcError("train.bundle_weight > 0 (method=multiview) needs keypoint observations in the "
+                            "buffer; rebuild it with the buffer stage, or use method=single")
+        try:
+            sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch,
+                                   opts.bundle_obs_per_group, np.random.default_rng([opts.seed, 2]))
+        except ValueError as exc:
+            raise UsvcError(f"bundle loss: {exc}") from exc
+    torch.manual_seed(opts.seed)
+    gen = torch.Generator().manual_seed(opts.seed)
+    head = Head(in_channels=buf.features.shape[1], width=opts.head_width, num_blocks=opts.head_blocks)
+    head.set_scene_center(mapping_center(buf))
+    head.to(device).train()
+
+    feats = torch.from_numpy(buf.features)  # fp16; batches are cast on the fly
+    pixels = torch.from_numpy(buf.pixels).float()
+    view = torch.from_numpy(buf.view_index.astype(np.int64))
+    Rv = torch.from_numpy(buf.view_R).float()
+    tv = torch.from_numpy(buf.view_t).float()
+    Kv = torch.from_numpy(buf.view_K).float()
+    Kinv = torch.linalg.inv(Kv)
+    depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
+    invalid_depth = opts.invalid_depth_rel * median_depth
+
+    if sampler is not None:
+        kp_feats = torch.from_numpy(buf.kp_features)
+        kp_pixels = torch.from_numpy(buf.kp_pixels).float()
+        kp_view = torch.from_numpy(buf.kp_view.astype(np.int64))
+    bundle_history: list[tuple[float, float]] = []
+
+    optim, sched = _optimizer(opts, head.parameters())
+    order = torch.randperm(n, generator=gen)
+    cursor, epochs = 0, 0
+    history: list[tuple[float, float, float]] = []
+    start = time.perf_counter()
+    bar = tqdm(range(opts.iterations), desc="train", unit="it")
+    for it in bar:
+        if cursor + opts.batch_size > n:
+            order, cursor, epochs = torch.randperm(n, generator=gen), 0, epochs + 1
+        idx = order[cursor:cursor + opts.batch_size]
+        cursor += opts.batch_size
+        v = view[idx]
+        x = feats[idx].to(device=device, dtype=torch.float32)
+        if sampler is not None:
+            rows, sizes = sampler.next()
+            rows_t = torch.from_numpy(rows)
+            x = torch.cat([x, kp_feats[rows_t].to(device=device, dtype=torch.float32)])
+        pred = head.forward_flat(x)
+        tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
+        pix_loss, stats = reprojection_loss(
+            pred[:len(idx)], pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
+            Kinv[v].to(device), tau, depth_min=depth_min, depth_max=depth_max,
+            max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
+        loss = opts.reproj_weight * pix_loss
+        if sampler is not None:
+            kv = kp_view[rows_t]
+            b_loss, b_stats = bundle_loss(
+                pred[len(idx):], torch.from_numpy(sizes), kp_pixels[rows_t].to(device), Rv[kv].to(device),
+                tv[kv].to(device), Kv[kv].to(device), Kinv[kv].to(device), tau, form=opts.bundle_loss,
+                depth_min=depth_min, depth_max=depth_max, invalid_depth=invalid_depth, max_reproj=opts.max_reproj_px)
+            loss = loss + opts.bundle_weight * b_loss
+            bundle_history.append((float(b_loss.detach()), float(b_stats["reproj_median"])))
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        sched.step()
+        if not torch.isfinite(loss):
+            raise UsvcError(f"training diverged at iteration {it} (loss {float(loss)}); lower train.lr")
+        history.append((float(pix_loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
+        if it % 50 == 0:
+            bar.set_postfix(loss=f"{history[-1][0]:.2f}", valid=f"{history[-1][1]:.2f}",
+                            px=f"{history[-1][2]:.1f}", tau=f"{tau:.1f}")
+    seconds = time.perf_counter() - start
+    head.eval()
+    tail = np.array(history[-max(1, len(history) // 20):])
+    summary = {
+        "iterations": opts.iterations,
+        "samples_seen": opts.iterations * opts.batch_size,
+        "epochs": round(opts.iterations * opts.batch_size / n, 2),
+        "final_loss": float(tail[:, 0].mean()),
+        "final_valid_fraction": float(tail[:, 1].mean()),
+        "final_reproj_median_px": float(np.nanmean(tail[:, 2])),
+        "train_seconds": seconds,
+        "samples_per_second": opts.iterations * opts.batch_size / seconds,
+        "median_depth": float(median_depth),
+        "loss_curve": [float(np.mean([h[0] for h in history[i:i + 100]])) for i in range(0, len(history), 100)],
+        "bundle_weight": opts.bundle_weight,
+    }
+    if sampler is not None:
+        btail = np.array(bundle_history[-max(1, len(bundle_history) // 20):])
+        summary.update({
+            "bundle_groups": sampler.num_groups,
+            "bundle_group_epochs": round(opts.iterations * sampler.groups_per_batch / sampler.num_groups, 2),
+            "final_bundle_loss": float(btail[:, 0].mean()),
+            "final_bundle_reproj_median_px": float(np.nanmean(btail[:, 1])),
+            "bundle_loss_curve": [float(np.mean([h[0] for h in bundle_history[i:i + 100]]))
+                                  for i in range(0, len(bundle_history), 100)],
+        })
+    log.info("trained head: %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
+             opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
+             summary["final_reproj_median_px"])
+    return head, summary
+
