@@ -18,10 +18,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from usvc.atomic import atomic_dir
-from usvc.distorted_scene import DistortOptions, undistortion_psnr, write_distorted_scene
-from usvc.errors import UsvcError
-from usvc.importers import load_scene
+from usvc.core.atomic import atomic_dir
+from usvc.analysis.distorted_scene import DistortOptions, undistortion_psnr, write_distorted_scene
+from usvc.core.errors import UsvcError
+from usvc.prepare.importers import load_scene
 
 
 def main() -> int:
