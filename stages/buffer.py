@@ -7,7 +7,6 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.buffer.build import (
-    BufferOptions,
     fill_buffer,
     holdout_split,
     working_short_side,
@@ -17,7 +16,7 @@ from usvc.buffer.keypoint_obs import read_scene_keypoints
 from usvc.core.atomic import atomic_dir
 from usvc.core.scene_io import read_depth, read_scene_h5
 from usvc.model.encoder import encoder_fingerprint
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -52,12 +51,7 @@ def main(cfg: DictConfig) -> None:
     b = cfg.buffer
     short_side = working_short_side(min(frames[0].camera.width, frames[0].camera.height), b.short_side,
                                     cfg.model.max_short_side)
-    opts = BufferOptions(size=b.size, samples_per_image=b.samples_per_image, short_side=short_side,
-                         scale_min=b.scale_min, scale_max=b.scale_max, max_rotation_deg=b.max_rotation_deg,
-                         brightness=(b.brightness_min, b.brightness_max), contrast=(b.contrast_min, b.contrast_max),
-                         seed=cfg.seed, keypoint_obs_per_view=b.keypoint_obs_per_view,
-                         depth_visibility_tol=b.depth_visibility_tol)
-    buf = fill_buffer(frames, encoder, opts, keypoints=keypoints,
+    buf = fill_buffer(frames, encoder, group_options(cfg, "buffer"), short_side, seed=cfg.seed, keypoints=keypoints,
                       depths=depths if any(d is not None for d in depths) else None)
     out, metrics_path = stage_outputs(cfg, "buffer")
     with atomic_dir(out) as tmp:

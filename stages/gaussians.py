@@ -6,17 +6,16 @@ import cv2
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
 from usvc.core.scene_io import read_scene_h5
 from usvc.gaussians.fit import fit_gaussians, load_fit_images, split_holdout
 from usvc.gaussians.stage_fit import (
-    fit_options,
     initial_gaussians,
     ply_reload_difference,
 )
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -39,11 +38,10 @@ def main(cfg: DictConfig) -> None:
     if skip_unless_rendered_views(cfg, "gaussians"):
         return
     paths = scene_paths(cfg)
-    gcfg = OmegaConf.to_container(cfg.gaussians)
-    opts = fit_options(gcfg)
+    opts = group_options(cfg, "gaussians")
     tracks = read_tracks(paths.sfm / "tracks.h5")
     images = load_fit_images(read_scene_h5(paths.prepared).split("train"), opts.width)
-    init = initial_gaussians(tracks, opts.sh_degree, gcfg["initial_opacity"])
+    init = initial_gaussians(tracks, opts.sh_degree, opts.initial_opacity)
     log.info("gaussians %s: fitting %d initial Gaussians to %d images at %dx%d, %d iterations", cfg.scene.name,
              len(init), len(images), images[0].view.width, images[0].view.height, opts.iterations)
     device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -5,12 +5,11 @@ import time
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from usvc.core.errors import UsvcError
-from usvc.generate.params import RoomParams
 from usvc.generate.writer import generate_scene
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     is_multirun,
     job_dir,
@@ -31,7 +30,7 @@ def main(cfg: DictConfig) -> None:
         raise UsvcError(f"scene {cfg.scene.name!r} is not a generated scene (scene.generated=false)")
     out = job_dir() / "raw" if is_multirun() else Path(cfg.scene.path)
     t0 = time.perf_counter()
-    stats = generate_scene(out, RoomParams(**OmegaConf.to_container(cfg.generate)))
+    stats = generate_scene(out, group_options(cfg, "generate"))
     metrics = {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()}
     write_json(job_dir() / "metrics.json" if is_multirun() else scene_paths(cfg).metrics("generate"), metrics)
     log.info("generated %s in %.1f s", out, metrics["seconds"])

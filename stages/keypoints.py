@@ -9,12 +9,11 @@ from omegaconf import DictConfig
 from usvc.core.atomic import atomic_dir
 from usvc.core.ply import write_points_ply
 from usvc.keypoints.scoring import (
-    KeypointOptions,
     keypoint_stats,
     select_keypoints,
     write_keypoints,
 )
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -33,7 +32,7 @@ register_configs()
 def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     tracks = read_tracks(scene_paths(cfg).sfm / "tracks.h5")
-    opts = KeypointOptions(**cfg.keypoints)
+    opts = group_options(cfg, "keypoints")
     kp = select_keypoints(tracks, opts)
     out, metrics_path = stage_outputs(cfg, "keypoints")
     with atomic_dir(out) as tmp:

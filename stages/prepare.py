@@ -7,11 +7,10 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import peak_memory_mb, stage_main, stage_outputs, write_json
 from usvc.prepare.importers import load_scene
 from usvc.prepare.prepare import prepare_scene
-from usvc.sfm.sfm import SfmOptions
 
 log = logging.getLogger("usvc")
 register_configs()
@@ -25,7 +24,7 @@ def main(cfg: DictConfig) -> None:
     scene = load_scene(sc.format, sc.path, sc.name, sc.split, sc.split_n, sc.metric_scale)
     out, metrics_path = stage_outputs(cfg, "prepared")
     with atomic_dir(out) as tmp:
-        stats = prepare_scene(scene, tmp, sc.working_width, sc.undistort_fov, SfmOptions(**cfg.sfm))
+        stats = prepare_scene(scene, tmp, sc.working_width, sc.undistort_fov, group_options(cfg, "sfm"))
     write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
 
 

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
 from usvc.core.scene_io import read_scene_h5
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -18,7 +18,7 @@ from usvc.pipeline.stage import (
     write_json,
 )
 from usvc.relocalize.relocalize_scene import relocalize_frames, write_results
-from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
+from usvc.relocalize.relocalizer import Relocalizer
 
 log = logging.getLogger("usvc")
 register_configs()
@@ -30,8 +30,8 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     paths = scene_paths(cfg)
     frames = read_scene_h5(paths.prepared).split("test")
-    options = RelocalizeOptions(**cfg.relocalize, seed=cfg.seed)
-    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options)
+    options = group_options(cfg, "relocalize")
+    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options, seed=cfg.seed)
     mapped = relocalizer.metadata.get("scene")
     if cfg.scene.name != mapped:
         raise UsvcError(f"{paths.map / 'map.pt'} is a map of scene {mapped!r}, not of {cfg.scene.name!r}: "

@@ -4,12 +4,12 @@ import logging
 import time
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from usvc.buffer.keypoint_obs import read_scene_keypoints
 from usvc.core.atomic import atomic_dir
 from usvc.core.scene_io import read_scene_h5
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -18,7 +18,7 @@ from usvc.pipeline.stage import (
     stage_outputs,
     write_json,
 )
-from usvc.render.novel_views import NovelViewOptions, render_novel_views
+from usvc.render.novel_views import render_novel_views
 from usvc.render.render_io import write_rendered_views
 from usvc.splat.ply_io import read_splat_ply
 
@@ -36,7 +36,7 @@ def main(cfg: DictConfig) -> None:
     model = read_splat_ply(paths.gaussians / "splat.ply")
     frames = read_scene_h5(paths.prepared).split("train")
     keypoints = read_scene_keypoints(paths.keypoints / "keypoints.h5")
-    opts = NovelViewOptions(**OmegaConf.to_container(cfg.render))
+    opts = group_options(cfg, "render")
     views, stats = render_novel_views(model, frames, keypoints, opts, tile=cfg.gaussians.tile)
     out, metrics_path = stage_outputs(cfg, "render")
     with atomic_dir(out) as tmp:

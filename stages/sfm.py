@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from usvc.core.atomic import atomic_dir
 from usvc.core.ply import write_points_ply
 from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -19,7 +19,7 @@ from usvc.pipeline.stage import (
     stage_outputs,
     write_json,
 )
-from usvc.sfm.sfm import SfmOptions, reconstruct
+from usvc.sfm.sfm import reconstruct
 from usvc.sfm.tracks import from_reconstruction, sfm_stats, write_tracks
 
 log = logging.getLogger("usvc")
@@ -32,7 +32,7 @@ def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     prepared = scene_paths(cfg).prepared
     scene = read_scene_h5(prepared)
-    opts = SfmOptions(**cfg.sfm)
+    opts = group_options(cfg, "sfm")
     out, metrics_path = stage_outputs(cfg, "sfm")
     with atomic_dir(out) as tmp, tempfile.TemporaryDirectory(prefix="usvc-sfm-") as work:
         rec, info = reconstruct(scene.split("train"), prepared / IMAGE_DIR, Path(work), opts, scene.has_poses)

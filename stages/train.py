@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 from usvc.buffer.build import check_buffer_encoder, read_buffer, read_buffer_attrs
 from usvc.core.atomic import atomic_dir
 from usvc.model.head import Regressor, save_map
-from usvc.pipeline.config import register_configs
+from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
@@ -19,7 +19,7 @@ from usvc.pipeline.stage import (
 )
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import read_tracks
-from usvc.train.train_head import TrainOptions, train_head
+from usvc.train.train_head import train_head
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")
@@ -40,9 +40,8 @@ def main(cfg: DictConfig) -> None:
     check_buffer_encoder(buffer_file, attrs, encoder, weights)
     buf = read_buffer(buffer_file)
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
-    opts = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
-                        seed=cfg.seed)
-    head, summary = train_head(buf, median_depth, opts)
+    head, summary = train_head(buf, median_depth, group_options(cfg, "train"), head_width=cfg.model.head_width,
+                               head_blocks=cfg.model.head_blocks, seed=cfg.seed)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,

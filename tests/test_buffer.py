@@ -44,12 +44,13 @@ def encoder():
     return Encoder(width=0.25)
 
 
-OPTS = BufferOptions(size=1000, samples_per_image=150, short_side=240, seed=3)
+OPTS = BufferOptions(size=1000, samples_per_image=150)
+SHORT_SIDE, SEED = 240, 3
 
 
 def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
     frames = read_scene_h5(scene).split("train")
-    a = fill_buffer(frames, encoder, OPTS)
+    a = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     assert a.features.shape == (1000, encoder.out_channels) and a.features.dtype == np.float16
     assert len(a.view_image) == 7  # ceil(1000 / 150) augmented views over 3 images
     assert set(a.view_image.tolist()) == {0, 1, 2}
@@ -57,7 +58,7 @@ def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
     b = read_buffer(tmp_path / "b.h5")
     np.testing.assert_array_equal(a.features, b.features)
     assert read_buffer_image_names(tmp_path / "b.h5") == a.image_names == [f.name for f in frames]
-    c = fill_buffer(frames, encoder, OPTS)
+    c = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     np.testing.assert_array_equal(a.features, c.features)
     np.testing.assert_array_equal(a.view_R, c.view_R)
 
@@ -66,7 +67,7 @@ def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encod
     """Augmented cameras keep the source camera's centre, and every sampled cell's ray, carried
     back into the source camera, lands inside the source image (padding is never sampled)."""
     frames = read_scene_h5(scene).split("train")
-    buf = fill_buffer(frames, encoder, OPTS)
+    buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     for v in range(len(buf.view_image)):
         frame = frames[buf.view_image[v]]
         K, R, t = (buf.view_K[v].astype(np.float64), buf.view_R[v].astype(np.float64),
@@ -81,9 +82,9 @@ def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encod
 
 def test_features_are_the_encoders_at_the_cell(scene, encoder):
     frames = read_scene_h5(scene).split("train")
-    opts = BufferOptions(size=150, samples_per_image=150, short_side=240, scale_min=1.0, scale_max=1.0,
-                         max_rotation_deg=0.0, brightness=(1.0, 1.0), contrast=(1.0, 1.0), seed=1)
-    buf = fill_buffer(frames, encoder, opts)
+    opts = BufferOptions(size=150, samples_per_image=150, scale_min=1.0, scale_max=1.0, max_rotation_deg=0.0,
+                         brightness_min=1.0, brightness_max=1.0, contrast_min=1.0, contrast_max=1.0)
+    buf = fill_buffer(frames, encoder, opts, 240, seed=1)
     frame = frames[buf.view_image[0]]
     import cv2
 
@@ -102,7 +103,7 @@ def test_distorted_camera_is_rejected(encoder, tmp_path):
     cam = Camera("OPENCV", 64, 48, (50, 50, 32, 24, 0.1, 0, 0, 0))
     frame = Frame("a.png", tmp_path / "a.png", cam, "train", np.eye(3), np.zeros(3))
     with pytest.raises(UsvcError, match="a.png.*pinhole"):
-        fill_buffer([frame], encoder, OPTS)
+        fill_buffer([frame], encoder, OPTS, SHORT_SIDE, seed=SEED)
 
 
 # --- keypoint tuples (k, d_k, R_i, t_i, u_obs) -------------------------------------------------
@@ -132,8 +133,8 @@ def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, enc
     frames = read_scene_h5(scene).split("train")
     kp, n = _keypoints_on_surface(scene, frames)
     depths = [read_depth(scene, i) for i in range(len(frames))]
-    buf = fill_buffer(frames, encoder, OPTS, keypoints=kp, depths=depths)
-    plain = fill_buffer(frames, encoder, OPTS)
+    buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED, keypoints=kp, depths=depths)
+    plain = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     np.testing.assert_array_equal(buf.features, plain.features)  # keypoints do not disturb pixel sampling
     assert buf.has_keypoints and np.all(np.diff(buf.kp_id) >= 0)
     X = kp.xyz[buf.kp_id]
@@ -157,7 +158,7 @@ def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, enc
 def test_without_depth_only_track_observations_are_used(scene, encoder):
     frames = read_scene_h5(scene).split("train")
     kp, _ = _keypoints_on_surface(scene, frames)
-    buf = fill_buffer(frames, encoder, OPTS, keypoints=kp)
+    buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED, keypoints=kp)
     assert set(buf.view_image[buf.kp_view].tolist()) == {0} and not buf.kp_from_depth.any()
 
 
@@ -205,7 +206,7 @@ def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, 
 
     frames = read_scene_h5(scene).split("train")
     path = tmp_path / "b.h5"
-    write_buffer(path, fill_buffer(frames, encoder, OPTS), short_side=240, encoder_file="a.pt",
+    write_buffer(path, fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED), short_side=240, encoder_file="a.pt",
                  encoder_fingerprint=encoder_fingerprint(encoder))
     attrs = read_buffer_attrs(path)
     check_buffer_encoder(path, attrs, encoder, Path("a.pt"))  # the same encoder passes

@@ -73,20 +73,20 @@ def test_stage_reports_bad_config_in_one_line():
     assert "Traceback" not in proc.stderr + proc.stdout
 
 
-def test_relocalizer_defaults_are_the_configured_ones():
-    """The CLI and the Python API use RelocalizeOptions' defaults; the pipeline uses
-    conf/relocalize/default.yaml. Both must hold the same (calibrated) values."""
-    from usvc.relocalize.relocalizer import RelocalizeOptions
-
-    configured = yaml.safe_load((REPO / "conf/relocalize/default.yaml").read_text())
-    defaults = RelocalizeOptions()
+@pytest.mark.parametrize("group", sorted(g for g in GROUP_SCHEMAS if (REPO / "conf" / g / "default.yaml").is_file()))
+def test_options_defaults_are_the_configured_ones(group):
+    """A step's options dataclass is the schema of its config group, and its defaults (what the CLI
+    and the Python API use) are conf/<group>/default.yaml's values: one set of values, no drift."""
+    configured = yaml.safe_load((REPO / "conf" / group / "default.yaml").read_text())
+    configured.pop("defaults")
+    defaults = GROUP_SCHEMAS[group]()
+    assert {f.name for f in fields(defaults)} == set(configured), group
     for key, value in configured.items():
-        if key != "defaults":
-            assert getattr(defaults, key) == value, key
+        assert getattr(defaults, key) == value, (group, key)
 
 
 @pytest.mark.parametrize("override, message", [
-    ("model.max_short_side=-1", "model.max_short_side must be >= 0"),
+    ("model.max_short_side=-1", "model.max_short_side=-1 must be >= 0"),
     ("relocalize.min_confidence=1.5", "relocalize.min_confidence=1.5 must be in"),
     ("relocalize.focal_tolerance=-0.1", "relocalize.focal_tolerance=-0.1 must be >= 0"),
 ])

@@ -32,7 +32,11 @@ def test_dvc_yaml_lists_the_code_each_stage_runs():
 
 
 def test_a_dep_missing_from_dvc_yaml_is_reported(tmp_path):
-    text = (ROOT / "dvc.yaml").read_text()
+    correct = tmp_path / "correct.yaml"
+    correct.write_text((ROOT / "dvc.yaml").read_text())
+    code_deps.rewrite(correct)
+    assert code_deps.differences(correct) == {}
+    text = correct.read_text()
     assert "        - usvc/sfm/tracks.py\n" in text
     broken = tmp_path / "dvc.yaml"
     # Drop tracks.py from every stage that lists it, and add a module that no stage imports.

@@ -9,22 +9,17 @@ import pytest
 import torch
 
 from usvc.core.errors import UsvcError
-from usvc.model import (
+from usvc.model.encoder import (
+    LAYERS,
     Encoder,
-    Head,
-    ModelError,
-    Regressor,
     cell_centers,
     encoder_fingerprint,
     encoder_flops,
-    homogeneous_scale,
     load_encoder_weights,
-    load_map,
-    resize_to_short_side,
-    save_map,
-    to_network_input,
 )
-from usvc.model.encoder import LAYERS
+from usvc.model.errors import ModelError
+from usvc.model.head import Head, Regressor, homogeneous_scale, load_map, save_map
+from usvc.model.preprocess import resize_to_short_side, to_network_input
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "usvc" / "model"
 

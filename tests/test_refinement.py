@@ -8,6 +8,7 @@ the keypoint cells alone can recover the true pose.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -24,14 +25,18 @@ from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, map_keypoints, read_map_header, save_map
 from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
 from usvc.relocalize.refinement import (
-    RefineOptions,
     RefineResult,
     keypoint_cell_mask,
     pose_change,
     refine_pose,
 )
 from usvc.relocalize.relocalize_scene import write_results
-from usvc.relocalize.relocalizer import PoseEstimate, RelocalizeOptions, Relocalizer
+from usvc.relocalize.relocalizer import (
+    PoseEstimate,
+    RelocalizeOptions,
+    Relocalizer,
+    refine_options,
+)
 
 CAM = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))  # 20x15 cells
 H_CELLS, W_CELLS = 15, 20
@@ -86,7 +91,8 @@ def errors(R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
 def refine(coords: np.ndarray, R0: np.ndarray, t0: np.ndarray, keypoints: np.ndarray = KEYPOINTS,
            **opts: float) -> RefineResult:
     return refine_pose(PIXELS, coords, CAM, keypoints, R0, t0, max_error_px=THRESHOLD,
-                       median_depth=MEDIAN_DEPTH, options=RefineOptions(**opts))
+                       median_depth=MEDIAN_DEPTH,
+                       options=dataclasses.replace(refine_options(RelocalizeOptions()), **opts))
 
 
 # --- the synthetic setup is what the tests assume ------------------------------------------

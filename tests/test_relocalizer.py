@@ -289,10 +289,10 @@ def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     ({"min_confidence": 1.5}, r"min_confidence=1.5 must be in \[0, 1\]"),
     ({"focal_tolerance": -0.1}, r"focal_tolerance=-0.1 must be >= 0"),
 ])
-def test_options_are_refused_as_typed(kwargs: dict, message: str) -> None:
+def test_options_are_refused_as_typed(tiny_map: tuple[Path, Path], kwargs: dict, message: str) -> None:
     """The value named is the one given, not the threshold rescaled to the working size."""
     with pytest.raises(UsvcError, match=message):
-        RelocalizeOptions(**kwargs)
+        Relocalizer(*tiny_map, options=RelocalizeOptions(**kwargs))
 
 
 def test_api_misuse_is_one_clear_error(tiny_map: tuple[Path, Path], exact: list) -> None:

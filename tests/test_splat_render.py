@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from usvc.gaussians.densify import (
-    DensifyOptions,
     DensityStats,
     densify_and_prune,
     reset_opacity,
 )
-from usvc.gaussians.fit import FitImage, FitOptions, fit_gaussians, psnr
+from usvc.gaussians.fit import FitImage, fit_gaussians, psnr
+from usvc.gaussians.options import GaussiansOptions
 from usvc.render.novel_views import orbit_pose, visible_keypoints
 from usvc.render.novel_views import project as project_np
 from usvc.splat.gaussians import PARAM_NAMES, Gaussians, covariances, from_points
@@ -148,7 +148,7 @@ def test_densify_clones_splits_prunes_and_keeps_adam_state_aligned():
     grads = torch.zeros(10, 2)
     grads[[0, 1, 5, 6]] = 1.0  # only these are "hot"
     stats.add(grads, torch.ones(10), 2, 2)
-    info = densify_and_prune(params, opt, stats, extent=1.0, opts=DensifyOptions(grad_threshold=0.5),
+    info = densify_and_prune(params, opt, stats, extent=1.0, opts=GaussiansOptions(densify_grad_threshold=0.5),
                              generator=torch.Generator().manual_seed(0), prune_large=False)
     assert info == {"cloned": 2, "split": 2, "pruned": 1, "total": 10 - 2 - 1 + 2 + 4}
     for group in opt.param_groups:
@@ -172,8 +172,8 @@ def test_fit_recovers_a_small_scene():
         views.append(FitImage(f"v{i}", v, render(truth, v).rgb.detach().clamp(0, 1)))
     start = from_points(truth.means.numpy() + 0.02, np.full((40, 3), 128, np.uint8), sh_degree=0)
     before = np.mean([psnr(render(start, im.view).rgb, im.rgb) for im in views])
-    res = fit_gaussians(start, views, FitOptions(iterations=150, sh_degree=0, densify_from=1000, holdout_every=0,
-                                                 opacity_reset_every=0, lr_means=1e-3))
+    res = fit_gaussians(start, views, GaussiansOptions(iterations=150, sh_degree=0, densify_from=1000, holdout_every=0,
+                                                        opacity_reset_every=0, lr_means=1e-3))
     after = np.mean([psnr(render(res.gaussians, im.view).rgb, im.rgb) for im in views])
     assert after > before + 3, (before, after)
     assert res.metrics["iterations"] == 150 and res.metrics["gaussians"] == 40
@@ -237,11 +237,12 @@ def _frames_and_keypoints(tmp_path):
 
 
 def test_novel_views_round_trip_through_the_render_artifact(tmp_path):
-    from usvc.render.novel_views import NovelViewOptions, render_novel_views
+    from usvc.render.novel_views import render_novel_views
+    from usvc.render.options import RenderOptions
     from usvc.render.render_io import read_rendered_views, write_rendered_views
 
     g, frames, kp = _frames_and_keypoints(tmp_path)
-    opts = NovelViewOptions(views=4, max_angle_deg=10, cluster_radius_rel=0.5, min_cluster_keypoints=5,
+    opts = RenderOptions(views=4, max_angle_deg=10, cluster_radius_rel=0.5, min_cluster_keypoints=5,
                             min_visible_keypoints=3, min_alpha=0.3, depth_tolerance=0.2)
     views, stats = render_novel_views(g, frames, kp, opts)
     again, _ = render_novel_views(g, frames, kp, opts)
@@ -263,7 +264,8 @@ def test_clear_errors_for_missing_inputs(tmp_path):
     from usvc.core.errors import UsvcError
     from usvc.core.scene import Camera, Frame
     from usvc.gaussians.fit import load_fit_images
-    from usvc.render.novel_views import NovelViewOptions, render_novel_views
+    from usvc.render.novel_views import render_novel_views
+    from usvc.render.options import RenderOptions
     from usvc.render.render_io import read_rendered_views
 
     with pytest.raises(UsvcError, match="run the render stage"):
@@ -276,9 +278,9 @@ def test_clear_errors_for_missing_inputs(tmp_path):
         load_fit_images([Frame("a.png", tmp_path / "a.png", cam, "train", np.eye(3), np.zeros(3))], 0)
     g, frames, kp = _frames_and_keypoints(tmp_path)
     with pytest.raises(UsvcError, match="sees 10000 kept keypoints"):
-        render_novel_views(g, frames, kp, NovelViewOptions(min_cluster_keypoints=10000))
+        render_novel_views(g, frames, kp, RenderOptions(min_cluster_keypoints=10000))
     with pytest.raises(UsvcError, match="no novel view kept"):
-        render_novel_views(g, frames, kp, NovelViewOptions(views=2, max_tries=2, cluster_radius_rel=0.5,
+        render_novel_views(g, frames, kp, RenderOptions(views=2, max_tries=2, cluster_radius_rel=0.5,
                                                            min_cluster_keypoints=5, min_visible_keypoints=10000))
     with pytest.raises(UsvcError, match="at least 4 3D points"):
         from_points(np.zeros((2, 3)), np.zeros((2, 3), np.uint8), 0)

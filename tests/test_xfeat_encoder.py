@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from usvc.model import Head, ModelError, Regressor, load_map, save_map
 from usvc.model.encoder import feature_size
-from usvc.model.head import read_map_header
+from usvc.model.errors import ModelError
+from usvc.model.head import Head, Regressor, load_map, read_map_header, save_map
 from usvc.model.xfeat_encoder import (
     FEATURE_DIM,
     load_xfeat_encoder,

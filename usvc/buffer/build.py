@@ -20,8 +20,10 @@ from tqdm import tqdm
 
 from usvc.buffer.augment import augment
 from usvc.buffer.keypoint_obs import SceneKeypoints, sample_features, view_observations
+from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import read_h5, write_h5
+from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.options import check
 from usvc.core.scene import Frame
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.preprocess import luma01, normalise
@@ -29,19 +31,35 @@ from usvc.model.preprocess import luma01, normalise
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class BufferOptions:
-    size: int
-    samples_per_image: int = 1024
-    short_side: int = 480
-    scale_min: float = 1 / 1.5
-    scale_max: float = 1.5
-    max_rotation_deg: float = 15.0
-    brightness: tuple[float, float] = (0.9, 1.1)
-    contrast: tuple[float, float] = (0.9, 1.1)
-    seed: int = 0
-    keypoint_obs_per_view: int = 1024  # 0 = every keypoint the view sees
-    depth_visibility_tol: float = 0.05
+BUFFER_FORMAT, BUFFER_VERSION = "usvc-buffer", 1
+_PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
+# Every dataset of buffer.h5 with its attributes; docs/artifacts.md lists the same. File attributes:
+# what the stage passes to write_buffer (short_side, encoder_file, encoder_fingerprint), format, version.
+BUFFER_SCHEMA: dict[str, Field] = {
+    "features": Field("1", "frozen-encoder feature of one sampled 8x8 cell of an augmented view (fp16)"),
+    "pixels": Field("px", f"pixel the cell describes in its augmented view, (8j + 4.5, 8i + 4.5) for cell (i, j); "
+                          f"{_PIXELS}", "image"),
+    "view_index": Field("1", "augmented view of the cell: row of views/*"),
+    "views/image": Field("1", "source image of the augmented view: row of image_names"),
+    "views/R_world_to_cam": Field("1", "world-to-camera rotation of the augmented view (source pose with the "
+                                       "in-plane roll applied): x_cam = R x_world + t, OpenCV camera axes",
+                                  "world->camera"),
+    "views/t_world_to_cam": Field("scene units", "world-to-camera translation of the augmented view: "
+                                                 "x_cam = R x_world + t", "camera"),
+    "views/K": Field("px", f"intrinsic matrix of the augmented (rescaled) view; {_PIXELS}", "camera->image"),
+    "image_names": Field("1", "source images: the mapping images used (prepared names), then rendered views "
+                              "('render/NNNN.png') when the method uses them"),
+    "keypoints/features": Field("1", "encoder feature bilinearly sampled at the keypoint observation (fp16)"),
+    "keypoints/id": Field("1", "keypoint index: row of keypoints/xyz (= row of keypoints.h5 keypoints/*), "
+                               "not a COLMAP id; rows are sorted by it"),
+    "keypoints/pixels": Field("px", f"position of the keypoint observation in the augmented view; {_PIXELS}",
+                              "image"),
+    "keypoints/view": Field("1", "augmented view of the observation: row of views/*"),
+    "keypoints/from_depth": Field("1", "true: a projection of the keypoint that the depth map confirms visible; "
+                                       "false: an SfM track observation"),
+    "keypoints/xyz": Field("scene units", "3D position of every kept keypoint (keypoints.h5 keypoints/xyz)",
+                           "world"),
+}
 
 
 @dataclass
@@ -117,7 +135,8 @@ def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[F
 
 
 @torch.inference_mode()
-def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, device: str = "cpu",
+def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, short_side: int, seed: int = 0,
+                device: str = "cpu",
                 keypoints: SceneKeypoints | None = None,
                 depths: list[np.ndarray | None] | None = None) -> TrainingBuffer:
     """Repeated passes over the mapping images with fresh augmentation until `opts.size` cells.
@@ -132,8 +151,9 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
         _check_pinhole(f)
     if depths is not None and len(depths) != len(frames):
         raise UsvcError(f"got {len(depths)} depth maps for {len(frames)} mapping images")
-    rng = np.random.default_rng(opts.seed)
-    kp_rng = np.random.default_rng([opts.seed, 1])
+    check(opts, "buffer")
+    rng = np.random.default_rng(seed)
+    kp_rng = np.random.default_rng([seed, 1])
     kp_parts: dict[str, list] = {"id": [], "features": [], "pixels": [], "view": [], "from_depth": []}
     encoder = encoder.to(device).eval()
     feats, pixels, view_idx = [], [], []
@@ -145,9 +165,9 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
             for i in rng.permutation(len(frames)):
                 frame = frames[i]
                 view = augment(_load_gray(frame), frame.camera.K, frame.R, frame.t, rng,
-                               scale_range=(opts.scale_min, opts.scale_max), short_side=opts.short_side,
-                               max_rotation_deg=opts.max_rotation_deg, brightness=opts.brightness,
-                               contrast=opts.contrast)
+                               scale_range=(opts.scale_min, opts.scale_max), short_side=short_side,
+                               max_rotation_deg=opts.max_rotation_deg, brightness=(opts.brightness_min, opts.brightness_max),
+                               contrast=(opts.contrast_min, opts.contrast_max))
                 out = encoder(normalise(view.image).to(device))[0]  # (C, h, w)
                 c, h, w = out.shape
                 valid = _valid_cells(view.mask, h, w)
@@ -203,8 +223,9 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, devi
 
 
 def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) -> None:
-    """Write the buffer; `attrs` (e.g. the working short side) travel with it to the map."""
-    with write_h5(path) as h5:
+    """Write the buffer; `attrs` (e.g. the working short side) travel with it to the map. Every
+    dataset carries units/description/frame attributes (BUFFER_SCHEMA)."""
+    with write_h5(path, BUFFER_SCHEMA, BUFFER_FORMAT, BUFFER_VERSION) as h5:
         h5.attrs.update(attrs)
         h5.create_dataset("features", data=buf.features, chunks=(min(len(buf.features), 4096), buf.features.shape[1]))
         h5["pixels"], h5["view_index"] = buf.pixels, buf.view_index

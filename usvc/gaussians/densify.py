@@ -5,21 +5,10 @@ opacities periodically so floaters can be pruned. Adam's moments follow the rows
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
+from usvc.gaussians.options import GaussiansOptions
 from usvc.splat.gaussians import PARAM_NAMES, quat_to_rotmat
-
-
-@dataclass(frozen=True)
-class DensifyOptions:
-    grad_threshold: float = 2e-4  # mean view-space gradient norm, NDC units as in the reference
-    percent_dense: float = 0.01  # clone below, split above this fraction of the scene extent
-    min_opacity: float = 0.005
-    max_screen_radius: float = 0.0  # px; 0 = off (prune Gaussians that get this large on screen)
-    max_world_scale: float = 0.1  # fraction of the scene extent
-    max_gaussians: int = 200_000  # hard cap so CPU time and memory stay bounded
 
 
 class DensityStats:
@@ -63,13 +52,13 @@ def replace_rows(params: dict[str, torch.nn.Parameter], optimizer: torch.optim.A
 
 
 def densify_and_prune(params: dict[str, torch.nn.Parameter], optimizer: torch.optim.Adam, stats: DensityStats,
-                      extent: float, opts: DensifyOptions, generator: torch.Generator,
+                      extent: float, opts: GaussiansOptions, generator: torch.Generator,
                       prune_large: bool) -> dict[str, int]:
     with torch.no_grad():
         n = params["means"].shape[0]
         grads = stats.mean_grad()
         max_scale = torch.exp(params["log_scales"]).max(dim=1).values
-        hot = grads >= opts.grad_threshold
+        hot = grads >= opts.densify_grad_threshold
         room = max(0, opts.max_gaussians - n)
         clone = hot & (max_scale <= opts.percent_dense * extent)
         split = hot & ~clone

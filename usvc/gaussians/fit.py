@@ -17,39 +17,15 @@ from tqdm import tqdm
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Frame
 from usvc.gaussians.densify import (
-    DensifyOptions,
     DensityStats,
     densify_and_prune,
     reset_opacity,
 )
+from usvc.gaussians.options import GaussiansOptions
 from usvc.splat.gaussians import PARAM_NAMES, Gaussians
 from usvc.splat.rasterize import View, render
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class FitOptions:
-    iterations: int = 2000
-    width: int = 0  # fit and evaluation width in px; 0 = the prepared images' width
-    sh_degree: int = 3
-    sh_increase_every: int = 500  # one more SH band every this many iterations, as in 3DGS
-    ssim_weight: float = 0.2  # lambda of D-SSIM
-    lr_means: float = 1.6e-4  # times the scene extent, decayed exponentially to lr_means_final
-    lr_means_final: float = 1.6e-6
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 1.25e-4
-    lr_opacity: float = 0.05
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    densify_from: int = 200
-    densify_until: int = 1500
-    densify_every: int = 100
-    opacity_reset_every: int = 1000  # 0 = never
-    densify: DensifyOptions = DensifyOptions()
-    holdout_every: int = 8  # every n-th mapping image is held out for evaluation; 0 = none
-    tile: int = 8
-    seed: int = 0
 
 
 @dataclass
@@ -134,7 +110,7 @@ def evaluate(g: Gaussians, images: list[FitImage], tile: int = 8) -> dict:
             "psnr_per_view": {im.name: p for im, p in zip(images, ps)}}
 
 
-def fit_gaussians(init: Gaussians, images: list[FitImage], opts: FitOptions, device: str = "cpu") -> FitResult:
+def fit_gaussians(init: Gaussians, images: list[FitImage], opts: GaussiansOptions, device: str = "cpu") -> FitResult:
     """Optimise `init` against the non-held-out `images`; returns the model and its metrics."""
     t0 = time.perf_counter()
     torch.manual_seed(opts.seed)
@@ -171,7 +147,7 @@ def fit_gaussians(init: Gaussians, images: list[FitImage], opts: FitOptions, dev
         optimizer.zero_grad(set_to_none=True)
         if it <= opts.densify_until and it >= opts.densify_from and it % opts.densify_every == 0:
             past_reset = opts.opacity_reset_every > 0 and it > opts.opacity_reset_every
-            info = densify_and_prune(params, optimizer, stats, extent, opts.densify, gen, prune_large=past_reset)
+            info = densify_and_prune(params, optimizer, stats, extent, opts, gen, prune_large=past_reset)
             stats = DensityStats(info["total"], device)
             log.debug("iteration %d: %s", it, info)
         if opts.opacity_reset_every > 0 and it % opts.opacity_reset_every == 0 and it <= opts.densify_until:

@@ -1,4 +1,4 @@
-"""Options from config, SfM initialisation, and the PLY reload check of the gaussians stage."""
+"""SfM initialisation and the PLY reload check of the gaussians stage."""
 
 from __future__ import annotations
 
@@ -7,24 +7,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from usvc.gaussians.densify import DensifyOptions
-from usvc.gaussians.fit import FitImage, FitOptions
+from usvc.gaussians.fit import FitImage
 from usvc.sfm.tracks import Tracks
 from usvc.splat.gaussians import Gaussians, from_points
 from usvc.splat.ply_io import read_splat_ply
 from usvc.splat.rasterize import render
-
-_DENSIFY_KEYS = {"densify_grad_threshold": "grad_threshold", "percent_dense": "percent_dense",
-                 "min_opacity": "min_opacity", "max_screen_radius": "max_screen_radius",
-                 "max_world_scale": "max_world_scale", "max_gaussians": "max_gaussians"}
-
-
-def fit_options(cfg: dict) -> FitOptions:
-    """FitOptions from the `gaussians` config group (flat keys, densification ones included)."""
-    cfg = dict(cfg)
-    densify = DensifyOptions(**{new: cfg.pop(old) for old, new in _DENSIFY_KEYS.items()})
-    cfg.pop("initial_opacity")
-    return FitOptions(**cfg, densify=densify)
 
 
 def initial_gaussians(tracks: Tracks, sh_degree: int, initial_opacity: float) -> Gaussians:

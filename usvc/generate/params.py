@@ -13,17 +13,18 @@ from usvc.core.errors import UsvcError
 
 @dataclass
 class RoomParams:
-    """Scene, texture, lighting, trajectory and rendering settings (metres, pixels, seconds)."""
+    """Scene, texture, lighting, trajectory and rendering settings (metres, pixels, seconds): the
+    options of the generate step (the `generate` config group)."""
 
-    seed: int = 0
+    seed: int = 0  # the room, its textures and trajectories follow from this seed
     # Camera: pinhole, fx = fy = focal, principal point at the image centre (W/2, H/2).
-    width: int = 320
-    height: int = 240
-    focal: float = 260.0
+    width: int = 320  # image width, px
+    height: int = 240  # image height, px
+    focal: float = 260.0  # focal length, px
     # Room interior extent; the world frame is z-up with the floor at z = 0.
-    room_x: float = 4.0
-    room_y: float = 3.0
-    room_z: float = 2.6
+    room_x: float = 4.0  # room length, m
+    room_y: float = 3.0  # room width, m
+    room_z: float = 2.6  # room height, m
     n_objects: int = 4  # boxes standing on the floor (the first one in the room centre)
     n_wall_objects: int = 3  # thin boxes hanging on walls (shelves, pictures)
     # Textures.
@@ -32,17 +33,20 @@ class RoomParams:
     texture_noise: float = 0.04  # std of the per-texel albedo noise (albedo is in [0, 1])
     image_noise: float = 1.0  # std of the per-pixel sensor noise in 8-bit levels
     # Lighting: ambient + Lambertian point lights under the ceiling, hard box shadows.
-    ambient: float = 0.4
-    light_intensity: float = 0.65
-    n_lights: int = 2
-    shadows: bool = True
+    ambient: float = 0.4  # ambient light level
+    light_intensity: float = 0.65  # intensity of each point light
+    n_lights: int = 2  # point lights under the ceiling
+    shadows: bool = True  # hard shadows of the boxes
     # Trajectories.
-    n_map_sequences: int = 2
-    frames_per_map_sequence: int = 30
-    n_query_frames: int = 20
+    n_map_sequences: int = 2  # mapping sequences (camera arcs)
+    frames_per_map_sequence: int = 30  # frames per mapping sequence
+    n_query_frames: int = 20  # query frames (a separate arc)
     jitter: float = 1.0  # scale of the smooth handheld jitter (0 = perfectly smooth arcs)
     # Rendering: shade at supersample x the resolution, then area-average down.
-    supersample: int = 2
+    supersample: int = 2  # shading samples per pixel side (1..4), area-averaged down
+
+    def problems(self) -> list[str]:
+        return room_problems(self)
 
 
 MIN_ROOM_XY = 2.8  # the camera arcs keep 0.8-1.1 m from the walls
@@ -50,7 +54,7 @@ MIN_ROOM_Z = 2.2
 MAX_FACE_TEXELS = 2048  # the texture atlas width (usvc.generate.textures)  # cameras fly at 1.2-1.65 m, above every free-standing box
 
 
-def validate(params: RoomParams) -> None:
+def room_problems(params: RoomParams) -> list[str]:
     """Reject settings the layout and trajectory guarantees (clearance, overlap) do not cover."""
     problems = []
     if params.width < 8 or params.height < 8:
@@ -80,5 +84,10 @@ def validate(params: RoomParams) -> None:
         problems.append(f"supersample must be 1, 2, 3 or 4, got {params.supersample}")
     if params.jitter < 0 or params.jitter > 2:
         problems.append(f"jitter must be in [0, 2], got {params.jitter}")
+    return problems
+
+
+def validate(params: RoomParams) -> None:
+    problems = room_problems(params)
     if problems:
         raise UsvcError("invalid RoomParams: " + "; ".join(problems))

@@ -9,23 +9,12 @@ the triangulated point does not reproject onto.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 
 from usvc.core.errors import KeypointError
-from usvc.core.h5io import write_h5
-from usvc.sfm.tracks import Tracks, write_images_group
-
-
-@dataclass(frozen=True)
-class KeypointOptions:
-    tau: float
-    sigma: float
-    weights: str
-    reprojection_scale_px: float
-    min_track_length: int
+from usvc.keypoints.keypoints_file import Keypoints, write_keypoints  # noqa: F401  (stage imports it here)
+from usvc.keypoints.options import KeypointOptions
+from usvc.sfm.tracks import Tracks
 
 
 def normalise(descriptors: np.ndarray) -> np.ndarray:
@@ -56,13 +45,6 @@ def score_points(tracks: Tracks, opts: KeypointOptions) -> tuple[np.ndarray, np.
     return score, phi.astype(np.float32)
 
 
-@dataclass
-class Keypoints:
-    index: np.ndarray  # rows of the kept points in the tracks
-    score: np.ndarray  # (N,) score of every point, kept or not
-    mean_descriptor: np.ndarray  # (K,128) of the kept points
-
-
 def select_keypoints(tracks: Tracks, opts: KeypointOptions) -> Keypoints:
     score, phi = score_points(tracks, opts)
     keep = np.flatnonzero(score >= opts.tau)
@@ -89,23 +71,3 @@ def keypoint_stats(kp: Keypoints, tracks: Tracks, opts: KeypointOptions) -> dict
         "score_median": float(np.median(kp.score)),
         "score_histogram": {"edges": [round(float(e), 4) for e in edges], "counts": hist.tolist()},
     }
-
-
-def write_keypoints(path: Path, kp: Keypoints, tracks: Tracks) -> None:
-    """Kept points with their observations (image, uv), so later stages need only this file."""
-    length = tracks.track_length[kp.index]
-    kept = np.zeros(len(tracks.xyz), dtype=bool)
-    kept[kp.index] = True
-    obs_rows = np.flatnonzero(np.repeat(kept, tracks.track_length))
-    with write_h5(path) as h5:
-        write_images_group(h5, tracks)
-        k = h5.create_group("keypoints")
-        k["id"] = tracks.point_id[kp.index]
-        k["xyz"] = tracks.xyz[kp.index]
-        k["rgb"] = tracks.rgb[kp.index]
-        k["score"] = kp.score[kp.index]
-        k["mean_descriptor"] = kp.mean_descriptor
-        k["track_offset"] = np.concatenate([[0], np.cumsum(length)]).astype(np.int64)
-        obs = h5.create_group("obs")
-        obs["image"] = tracks.obs_image[obs_rows]
-        obs["uv"] = tracks.obs_uv[obs_rows]

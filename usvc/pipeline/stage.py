@@ -48,7 +48,7 @@ def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]
         try:
             validate(cfg)
             log.debug("threads: %d", threads.apply(threads.resolve(cfg.threads)))
-            quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG))
+            quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG) or bool(cfg.sfm.verbose))
             log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
             fn(cfg)
         except UsvcError as err:

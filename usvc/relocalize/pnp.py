@@ -23,10 +23,10 @@ import pycolmap
 
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
+from usvc.relocalize.options import BACKENDS  # noqa: F401  (callers import it from here)
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("pycolmap", "opencv")
 _CONFIDENCE = 0.99999
 _MAX_TRIALS = 10000
 # COLMAP caps its trial count by the inlier ratio it assumes at worst; dense SCR output can sit

@@ -25,12 +25,12 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """Refinement parameters (the `relocalize.refine_*` config keys)."""
+    """Refinement parameters, from the `refine_*` fields of RelocalizeOptions (no defaults of their own)."""
 
-    radius_px: float = 8.0  # cells within this distance (working-image px) of a projected keypoint are used
-    max_iterations: int = 5  # T_max: at most this many PnP re-solves
-    delta: float = 1e-3  # stop once |R_new - R_old|_F + |t_new - t_old| / median_depth is below this
-    min_correspondences: int = 20  # fewer masked cells than this (and never < 4): stop
+    radius_px: float  # cells within this distance (working-image px) of a projected keypoint are used
+    max_iterations: int  # T_max: at most this many PnP re-solves
+    delta: float  # stop once |R_new - R_old|_F + |t_new - t_old| / median_depth is below this
+    min_correspondences: int  # fewer masked cells than this (and never < 4): stop
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.radius_px) and self.radius_px > 0):

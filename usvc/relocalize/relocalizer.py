@@ -20,12 +20,14 @@ import torch
 from usvc.core.errors import UsvcError
 from usvc.core.exif import read_image_bgr
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
+from usvc.core.options import check
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
 from usvc.model.encoder import cell_centers
 from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
-from usvc.relocalize.pnp import BACKENDS, estimate_focal, solve_pnp
+from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
+from usvc.relocalize.pnp import estimate_focal, solve_pnp
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
@@ -38,39 +40,9 @@ Intrinsics = float | Sequence[float] | np.ndarray | Camera
 CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
 
 
-@dataclass(frozen=True)
-class RelocalizeOptions:
-    backend: str = "opencv"
-    max_error_px: float = 10.0  # RANSAC inlier threshold in pixels of an image with a 480 px short side
-    reference_short_side: int = 480  # ACE's working short side, where its 10 px threshold was tuned
-    min_inliers: int = 10
-    # Calibrated in docs/confidence.md; conf/relocalize/default.yaml holds the same values (a test checks).
-    min_confidence: float = 0.1  # answers whose inlier fraction is lower are reported as failures
-    focal_tolerance: float = 0.25  # given focal vs one estimated from the map (P4Pf): a larger relative gap fails; 0 = off
-    seed: int = 0
-    refine: bool = True  # keypoint-guided refinement (paper 3.2.2); skipped for maps without keypoints
-    refine_radius_px: float = 8.0  # mask radius around each projected keypoint, working-image pixels
-    refine_max_iterations: int = 5  # T_max
-    refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median depth < delta
-    refine_min_correspondences: int = 20  # fewer masked cells than this: stop refining
-
-    def __post_init__(self) -> None:
-        """Refuse bad values as given (before any rescaling), naming the option."""
-        if self.backend not in BACKENDS:
-            raise UsvcError(f"relocalize option backend={self.backend!r} is not one of {list(BACKENDS)}")
-        for name in ("max_error_px", "reference_short_side", "min_inliers", "refine_radius_px",
-                     "refine_max_iterations", "refine_delta", "refine_min_correspondences"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and value > 0):
-                raise UsvcError(f"relocalize option {name}={value!r} must be > 0")
-        if not 0 <= self.min_confidence <= 1:
-            raise UsvcError(f"relocalize option min_confidence={self.min_confidence!r} must be in [0, 1]")
-        if not self.focal_tolerance >= 0:
-            raise UsvcError(f"relocalize option focal_tolerance={self.focal_tolerance!r} must be >= 0 (0: no check)")
-
-    def refine_options(self) -> RefineOptions:
-        return RefineOptions(radius_px=self.refine_radius_px, max_iterations=self.refine_max_iterations,
-                             delta=self.refine_delta, min_correspondences=self.refine_min_correspondences)
+def refine_options(options: RelocalizeOptions) -> RefineOptions:
+    return RefineOptions(radius_px=options.refine_radius_px, max_iterations=options.refine_max_iterations,
+                         delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
 
 
 def _nan_R() -> np.ndarray:
@@ -195,11 +167,13 @@ class Relocalizer:
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
-                 options: RelocalizeOptions | None = None, device: str = "cpu") -> None:
+                 options: RelocalizeOptions | None = None, device: str = "cpu", seed: int = 0) -> None:
         if not isinstance(map_path, (str, Path)):
             raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
         device = _check_device(device)
         self.options = options or RelocalizeOptions()
+        check(self.options, "relocalize")
+        self.seed = seed  # RANSAC's seed
         header = read_map_header(map_path)
         width = float(header["encoder"].get("width", 1.0))
         kind = str(header["encoder"].get("kind", "ace"))
@@ -218,7 +192,7 @@ class Relocalizer:
         depth = self.metadata.get("median_depth")
         self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
             else 1.0
-        self.refine_options = self.options.refine_options()
+        self.refine_options = refine_options(self.options)
         self.refine = self.options.refine and self.keypoints_xyz is not None
         if self.options.refine and self.keypoints_xyz is None:
             log.warning("map %s has no 3D keypoints: keypoint-guided refinement is skipped", self.map_path)
@@ -240,7 +214,7 @@ class Relocalizer:
         imply another one. A wrong focal length can still explain most cells with a wrong pose
         (a shallow view trades focal length for distance), so confidence alone cannot catch it."""
         estimate = estimate_focal(pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
-                                  self.options.seed)
+                                  self.seed)
         if estimate is None:
             return ""  # no opinion: nothing to hold against the given focal length
         given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
@@ -279,11 +253,11 @@ class Relocalizer:
         t2 = time.perf_counter()
         hc, wc = coords.shape[:2]
         # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
-        threshold = self.options.max_error_px * min(gray.shape) / self.options.reference_short_side
+        threshold = self.options.max_error_px * min(gray.shape) / REFERENCE_SHORT_SIDE
         pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
         if camera is None:
             camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
-                                    self.options.seed)
+                                    self.seed)
             if camera is not None:
                 f = camera.params[0] / resize
                 given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
@@ -292,7 +266,7 @@ class Relocalizer:
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
             return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True)
         result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
-                           seed=self.options.seed, min_inliers=self.options.min_inliers,
+                           seed=self.seed, min_inliers=self.options.min_inliers,
                            backend=self.options.backend)
         rejected = ""
         if result.success and intrinsics is not None and self.options.focal_tolerance > 0:
@@ -304,7 +278,7 @@ class Relocalizer:
             ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
                               max_error_px=threshold, median_depth=self.median_depth,
                               options=self.refine_options, backend=self.options.backend,
-                              seed=self.options.seed, min_inliers=self.options.min_inliers)
+                              seed=self.seed, min_inliers=self.options.min_inliers)
             iterations, kept = ref.iterations, ref.kept
             if kept:
                 R, t, inliers = ref.R, ref.t, ref.final_inliers

@@ -24,25 +24,11 @@ from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.pose_errors import rotation_error_deg
 from usvc.core.scene import Frame
+from usvc.render.options import RenderOptions
 from usvc.splat.gaussians import Gaussians
 from usvc.splat.rasterize import View, render
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class NovelViewOptions:
-    views: int = 30
-    max_angle_deg: float = 20.0
-    max_translation_rel: float = 0.1
-    cluster_radius_rel: float = 0.15
-    min_cluster_keypoints: int = 10
-    min_visible_keypoints: int = 20
-    max_tries: int = 20
-    width: int = 0
-    depth_tolerance: float = 0.05
-    min_alpha: float = 0.5
-    seed: int = 0
 
 
 @dataclass
@@ -89,7 +75,7 @@ def visible_keypoints(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarr
     return ids[ok], uv[ids[ok]]
 
 
-def _cluster(kp: SceneKeypoints, seen: np.ndarray, R: np.ndarray, t: np.ndarray, opts: NovelViewOptions,
+def _cluster(kp: SceneKeypoints, seen: np.ndarray, R: np.ndarray, t: np.ndarray, opts: RenderOptions,
              rng: np.random.Generator) -> np.ndarray | None:
     seed = kp.xyz[rng.choice(seen)]
     depth = float((R @ seed + t)[2])
@@ -105,7 +91,7 @@ def _in_frame(uv: np.ndarray, z: np.ndarray, w: int, h: int) -> np.ndarray:
 
 @torch.no_grad()
 def render_novel_views(model: Gaussians, frames: list[Frame], kp: SceneKeypoints,
-                       opts: NovelViewOptions, tile: int = 8) -> tuple[list[NovelView], dict]:
+                       opts: RenderOptions, tile: int = 8) -> tuple[list[NovelView], dict]:
     """`opts.views` novel views (fewer only when the tries run out; the stats say how many)."""
     rng = np.random.default_rng(opts.seed)
     sources = [f for f in frames if len(kp.by_image.get(f.name, (np.zeros(0),))[0]) >= opts.min_cluster_keypoints]

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,25 +16,13 @@ import pycolmap
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame
+from usvc.sfm.options import SfmOptions
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
 
 log = logging.getLogger(__name__)
 
 # Pose-guided pairs only between cameras whose viewing directions differ by less than this.
 _PAIR_MAX_ANGLE_DEG = 60.0
-
-
-@dataclass(frozen=True)
-class SfmOptions:
-    max_num_features: int
-    matching: str
-    exhaustive_max_images: int
-    sequential_overlap: int
-    pose_pairs_per_image: int
-    reconstruction: str
-    min_points: int
-    num_threads: int
-    seed: int
 
 
 MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks

@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import torch
 
+from usvc.train.options import BUNDLE_FORMS
 from usvc.train.reprojection_loss import project_samples, reprojection_loss
 
-FORMS = ("tanh", "squared")
+FORMS = BUNDLE_FORMS
 
 
 def group_pairs(group_sizes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,48 +18,16 @@ from tqdm import tqdm
 from usvc.buffer.build import TrainingBuffer
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
+from usvc.core.options import check
 from usvc.model.head import Head
-from usvc.pipeline.config import TrainConfig
 from usvc.train.adabelief import AdaBelief
-from usvc.train.bundle_loss import FORMS, bundle_loss
+from usvc.train.bundle_loss import bundle_loss
 from usvc.train.group_sampler import GroupSampler
+from usvc.train.options import TrainOptions
 from usvc.train.reprojection_loss import reprojection_loss
 from usvc.train.schedule import circle_threshold
 
 log = logging.getLogger(__name__)
-
-OPTIMIZERS = ("adamw", "adabelief")
-SCHEDULES = ("one_cycle", "constant")
-
-
-@dataclass
-class TrainOptions(TrainConfig):
-    """The `train` config group (one schema, in usvc/pipeline/config.py) plus what comes from elsewhere."""
-
-    head_width: int = 512  # model.head_width
-    head_blocks: int = 1  # model.head_blocks
-    seed: int = 0
-
-
-def validate_options(opts: TrainOptions) -> None:
-    problems = []
-    if opts.optimizer not in OPTIMIZERS:
-        problems.append(f"train.optimizer={opts.optimizer!r} (expected one of {OPTIMIZERS})")
-    if opts.schedule not in SCHEDULES:
-        problems.append(f"train.schedule={opts.schedule!r} (expected one of {SCHEDULES})")
-    if opts.iterations < 1 or opts.batch_size < 1:
-        problems.append("train.iterations and train.batch_size must be >= 1")
-    if opts.bundle_loss not in FORMS:
-        problems.append(f"train.bundle_loss={opts.bundle_loss!r} (expected one of {FORMS})")
-    if opts.bundle_weight < 0 or opts.reproj_weight <= 0:
-        problems.append("train.bundle_weight must be >= 0 and train.reproj_weight > 0")
-    if opts.bundle_groups_per_batch < 1 or opts.bundle_obs_per_group < 1:
-        problems.append("train.bundle_groups_per_batch and train.bundle_obs_per_group must be >= 1")
-    if not 0 < opts.depth_min_rel < opts.invalid_depth_rel < opts.depth_max_rel:
-        problems.append("need 0 < train.depth_min_rel < train.invalid_depth_rel < train.depth_max_rel")
-    if problems:
-        raise UsvcError("invalid training options: " + "; ".join(problems))
-
 
 def mapping_center(buf: TrainingBuffer) -> np.ndarray:
     """Mean camera centre of the mapping images (ACE's scene centre); rolls keep the centre."""
@@ -82,10 +49,12 @@ def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
     return optim, sched
 
 
-def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
-               device: str = "cpu") -> tuple[Head, dict[str, Any]]:
-    """Fit a fresh head to the buffer; returns it and training statistics."""
-    validate_options(opts)
+def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, head_width: int = 256,
+               head_blocks: int = 1, seed: int = 0, device: str = "cpu") -> tuple[Head, dict[str, Any]]:
+    """Fit a fresh head (`head_width` channels, `head_blocks` residual blocks: the model's) to the
+    buffer; returns it and training statistics. `seed` fixes the head's initialisation and the
+    batches."""
+    check(opts, "train")
     if not (np.isfinite(median_depth) and median_depth > 0):
         raise UsvcError(f"training needs a positive median scene depth, got {median_depth}")
     n = len(buf.features)
@@ -99,12 +68,12 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions,
                             "buffer; rebuild it with the buffer stage, or use method=single")
         try:
             sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch,
-                                   opts.bundle_obs_per_group, np.random.default_rng([opts.seed, 2]))
+                                   opts.bundle_obs_per_group, np.random.default_rng([seed, 2]))
         except ValueError as exc:
             raise UsvcError(f"bundle loss: {exc}") from exc
-    torch.manual_seed(opts.seed)
-    gen = torch.Generator().manual_seed(opts.seed)
-    head = Head(in_channels=buf.features.shape[1], width=opts.head_width, num_blocks=opts.head_blocks)
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    head = Head(in_channels=buf.features.shape[1], width=head_width, num_blocks=head_blocks)
     head.set_scene_center(mapping_center(buf))
     head.to(device).train()
 

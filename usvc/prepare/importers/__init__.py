@@ -14,9 +14,8 @@ from pathlib import Path
 from usvc.core.errors import SceneError
 from usvc.core.scene import Scene
 from usvc.prepare.importers.common import IMAGE_SUFFIXES, list_images  # noqa: F401  (the CLI and benchmarks import them from here)
+from usvc.prepare.options import FORMATS, SPLIT_RULES
 
-FORMATS = ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge", "images")
-SPLIT_RULES = ("given", "every_nth")
 _MODULES = {
     "llff": "llff",
     "transforms": "transforms_json",

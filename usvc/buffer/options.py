@@ -1,0 +1,35 @@
+"""Options of the training buffer (the `buffer` config group): encoder features of augmented
+mapping views, sampled on the cell grid, plus the keypoint tuples each view sees."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from usvc.core.options import non_negative, ordered, positive
+
+
+@dataclass
+class BufferOptions:
+    size: int = 262144  # cells (feature vectors with their pixel and view) in the buffer
+    samples_per_image: int = 1024  # cells drawn from each augmented view
+    short_side: int = 0  # working short side the map is trained and queried at; 0 = the prepared images', at most model.max_short_side
+    scale_min: float = 0.6667  # random rescaling of each view, lower bound
+    scale_max: float = 1.5  # random rescaling of each view, upper bound
+    max_rotation_deg: float = 15.0  # random in-plane rotation of each view, at most this (degrees)
+    brightness_min: float = 0.9  # random brightness factor, lower bound
+    brightness_max: float = 1.1  # random brightness factor, upper bound
+    contrast_min: float = 0.9  # random contrast factor, lower bound
+    contrast_max: float = 1.1  # random contrast factor, upper bound
+    keypoint_obs_per_view: int = 1024  # keypoint tuples (k, d_k, R_i, t_i, u_obs) kept per augmented view; 0 = all
+    depth_visibility_tol: float = 0.05  # depth maps only: a keypoint off its track counts as seen where |depth - z| < tol * z
+    rendered_views: bool = False  # add the render stage's Gaussian-splatting views (set by method=multiview_gs)
+    holdout_every: int = 0  # withhold every k-th mapping image from training (a validation split); 0 = none
+
+    def problems(self) -> list[str]:
+        out = positive(self, "size", "samples_per_image", "scale_min", "scale_max", "brightness_min",
+                       "contrast_min", "depth_visibility_tol")
+        out += non_negative(self, "short_side", "keypoint_obs_per_view", "holdout_every", "max_rotation_deg")
+        for low, high in (("scale_min", "scale_max"), ("brightness_min", "brightness_max"),
+                          ("contrast_min", "contrast_max")):
+            out += ordered(self, low, high)
+        return out

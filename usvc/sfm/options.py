@@ -1,0 +1,29 @@
+"""Options of structure from motion with COLMAP (the `sfm` config group)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from usvc.core.options import one_of, positive
+
+MATCHING = ("auto", "exhaustive", "sequential", "poses")
+RECONSTRUCTION = ("auto", "triangulate", "incremental")
+
+
+@dataclass
+class SfmOptions:
+    max_num_features: int = 4096  # SIFT features per image
+    matching: str = "auto"  # auto: exhaustive up to exhaustive_max_images, else pose-guided (sequential without poses) | exhaustive | sequential | poses
+    exhaustive_max_images: int = 150  # matching=auto: exhaustive matching up to this many images
+    sequential_overlap: int = 10  # sequential matching: each image is matched with this many neighbours
+    pose_pairs_per_image: int = 20  # pose-guided matching: nearest cameras by centre and viewing direction
+    reconstruction: str = "auto"  # auto: triangulate with the given poses held fixed, incremental when the scene has none | triangulate | incremental
+    min_points: int = 100  # fewer triangulated points than this is a degenerate scene
+    num_threads: int = -1  # COLMAP feature-extraction threads (matching uses one, for reproducible runs); -1 = the top-level threads setting
+    seed: int = 0  # COLMAP's RANSAC seed, apart from the mapping seed so mapping seeds reuse the SfM
+    verbose: bool = False  # show COLMAP's own log (quiet unless asked)
+
+    def problems(self) -> list[str]:
+        out = one_of(self, "matching", MATCHING) + one_of(self, "reconstruction", RECONSTRUCTION)
+        return out + positive(self, "max_num_features", "exhaustive_max_images", "sequential_overlap",
+                              "pose_pairs_per_image")
