@@ -1,8 +1,10 @@
-"""Typed configuration: Hydra structured-config schemas for every YAML file under conf/.
+"""The pipeline's configuration: each config group's schema is its step's options dataclass.
 
-The YAML files are the single source of values (DVC tracks them directly); these dataclasses
-are the schema, so an unknown key or a value of the wrong type fails at compose time, and
-`validate` catches values outside their allowed set with a message naming the key.
+`conf/<group>/*.yaml` hold the values (DVC tracks them directly); the options dataclass beside each
+step's code (e.g. `usvc/train/options.py`) is the group's schema and the type the step's code
+takes, with defaults equal to `conf/<group>/default.yaml` (a test checks). An unknown key or a
+value of the wrong type fails at compose time; `validate` asks each group's options for values
+outside what the step accepts (`problems()`) and names the key.
 """
 
 from __future__ import annotations
@@ -34,18 +36,18 @@ class Config:
     seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
     threads: str = "auto"  # torch/OpenCV/COLMAP/BLAS threads: auto (cores / jobs side by side) or a number
     method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
-    data_dir: str = "data"
-    results_dir: str = "results"
-    scene: SceneOptions = field(default_factory=SceneOptions)
-    generate: RoomParams = field(default_factory=RoomParams)
-    sfm: SfmOptions = field(default_factory=SfmOptions)
-    keypoints: KeypointOptions = field(default_factory=KeypointOptions)
-    model: ModelOptions = field(default_factory=ModelOptions)
-    buffer: BufferOptions = field(default_factory=BufferOptions)
-    train: TrainOptions = field(default_factory=TrainOptions)
-    relocalize: RelocalizeOptions = field(default_factory=RelocalizeOptions)
-    gaussians: GaussiansOptions = field(default_factory=GaussiansOptions)
-    render: RenderOptions = field(default_factory=RenderOptions)
+    data_dir: str = "data"  # where the artifacts go: <data_dir>/<scene>/<stage>
+    results_dir: str = "results"  # where the metrics and plots go: <results_dir>/<scene>/
+    scene: SceneOptions = field(default_factory=SceneOptions)  # the scene group: SceneOptions
+    generate: RoomParams = field(default_factory=RoomParams)  # the generate group: RoomParams
+    sfm: SfmOptions = field(default_factory=SfmOptions)  # the sfm group: SfmOptions
+    keypoints: KeypointOptions = field(default_factory=KeypointOptions)  # the keypoints group: KeypointOptions
+    model: ModelOptions = field(default_factory=ModelOptions)  # the model group: ModelOptions
+    buffer: BufferOptions = field(default_factory=BufferOptions)  # the buffer group: BufferOptions
+    train: TrainOptions = field(default_factory=TrainOptions)  # the train group: TrainOptions
+    relocalize: RelocalizeOptions = field(default_factory=RelocalizeOptions)  # the relocalize group: RelocalizeOptions
+    gaussians: GaussiansOptions = field(default_factory=GaussiansOptions)  # the gaussians group: GaussiansOptions
+    render: RenderOptions = field(default_factory=RenderOptions)  # the render group: RenderOptions
 
 
 METHODS = ("single", "multiview", "multiview_gs")
