@@ -53,13 +53,6 @@ class Config:
 METHODS = ("single", "multiview", "multiview_gs")
 
 
-def _get(cfg: Any, dotted: str) -> Any:
-    node = cfg
-    for part in dotted.split("."):
-        node = getattr(node, part)
-    return node
-
-
 def _known_keys() -> list[str]:
     top = [f.name for f in fields(Config)]
     return top + [f"{g}.{f.name}" for g, schema in GROUP_SCHEMAS.items() for f in fields(schema)]
@@ -134,10 +127,6 @@ def register_configs() -> None:
         cs.store(group=group, name=f"base_{group}", node=schema)
 
 
-
-
-def schema_fields(schema: type) -> list[str]:
-    return [f.name for f in fields(schema)]
 
 
 def compose_for_script(scene: str, overrides: list[str]) -> Any:
