@@ -9,44 +9,13 @@ augmentation (`pixel_transform`) and must land on valid (non-padded) pixels of t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from usvc.buffer.augment import AugmentedView
-from usvc.core.errors import KeypointError
-from usvc.core.h5io import read_h5
+from usvc.keypoints.keypoints_file import SceneKeypoints, read_scene_keypoints  # noqa: F401  (stages import it here)
 from usvc.model.encoder import OUTPUT_STRIDE
-
-
-@dataclass
-class SceneKeypoints:
-    """Kept keypoints with their track observations grouped by mapping image name."""
-
-    xyz: np.ndarray  # (K, 3)
-    by_image: dict[str, tuple[np.ndarray, np.ndarray]]  # name -> (keypoint index (n,), uv (n, 2))
-
-
-def read_scene_keypoints(path: Path) -> SceneKeypoints:
-    path = Path(path)
-    if not path.is_file():
-        raise KeypointError(f"keypoints file not found: {path} (run the keypoints stage first)")
-    with read_h5(path, "keypoints") as h5:
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["images/name"][()]]
-        xyz = h5["keypoints/xyz"][()].astype(np.float64)
-        offset = h5["keypoints/track_offset"][()]
-        image, uv = h5["obs/image"][()], h5["obs/uv"][()].astype(np.float64)
-    if len(xyz) == 0:
-        raise KeypointError(f"{path}: holds no keypoints")
-    kp_of_obs = np.repeat(np.arange(len(xyz)), np.diff(offset))
-    by_image = {}
-    for i, name in enumerate(names):
-        rows = np.flatnonzero(image == i)
-        by_image[name] = (kp_of_obs[rows], uv[rows])
-    return SceneKeypoints(xyz=xyz, by_image=by_image)
 
 
 def depth_visible(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, depth: np.ndarray,

@@ -11,12 +11,38 @@ import h5py
 import numpy as np
 
 from usvc.core.errors import SceneError
-from usvc.core.h5io import read_h5, write_h5
+from usvc.core.h5io import Field, read_h5, write_h5
 from usvc.core.scene import CAMERA_MODELS, Camera, Frame, Scene
 
 SCENE_FILE = "scene.h5"
 IMAGE_DIR = "images"
 _MAX_PARAMS = max(CAMERA_MODELS.values())
+
+SCENE_FORMAT, SCENE_VERSION = "usvc-scene", 1
+_PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
+_PARAMS_UNITS = "px (focal lengths, principal point); 1 (distortion coefficients)"
+# Every dataset of scene.h5 with its attributes; docs/artifacts.md lists the same. File attributes:
+# name, metric_scale (metres per scene unit, NaN when unknown), has_poses, pose_source, format, version.
+SCENE_SCHEMA: dict[str, Field] = {
+    "name": Field("1", "image file name, relative to prepared/images; row i is frame i"),
+    "split": Field("1", "'train' (mapping image) or 'test' (query image)"),
+    "camera_model": Field("1", "COLMAP camera model of the prepared (undistorted, resized) image"),
+    "camera_size": Field("px", "width, height of the prepared image", "image"),
+    "camera_params": Field(_PARAMS_UNITS, "parameters of camera_model in COLMAP's order (PINHOLE: fx fy cx cy), "
+                                          f"NaN-padded to 12 columns; {_PIXELS}", "image"),
+    "source_camera_model": Field("1", "COLMAP camera model of the image as imported (before undistortion "
+                                      "and resizing)"),
+    "source_camera_size": Field("px", "width, height of the image as imported", "image"),
+    "source_camera_params": Field(_PARAMS_UNITS, "parameters of source_camera_model in COLMAP's order, "
+                                                 f"NaN-padded to 12 columns; {_PIXELS}", "image"),
+    "R_world_to_cam": Field("1", "world-to-camera rotation: x_cam = R x_world + t, OpenCV camera axes "
+                                 "(x right, y down, z forward); NaN for a frame without a pose", "world->camera"),
+    "t_world_to_cam": Field("scene units", "world-to-camera translation: x_cam = R x_world + t (the world "
+                                           "origin in camera coordinates); times metric_scale = metres", "camera"),
+    "depth/*": Field("scene units", "depth map of frame <i> (row of name) at working resolution: z along the "
+                                    "optical axis per pixel; pixels without a measurement keep the source's value "
+                                    "(0 in generated scenes)", "camera"),
+}
 
 
 def _camera_arrays(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -46,7 +72,7 @@ def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | N
     models, sizes, params = _camera_arrays([f.camera for f in scene.frames])
     R = np.stack([f.R if f.has_pose else np.full((3, 3), np.nan) for f in scene.frames])
     t = np.stack([f.t if f.has_pose else np.full(3, np.nan) for f in scene.frames])
-    with write_h5(path) as h5:
+    with write_h5(path, SCENE_SCHEMA, SCENE_FORMAT, SCENE_VERSION) as h5:
         h5.attrs["name"] = scene.name
         h5.attrs["metric_scale"] = np.nan if scene.metric_scale is None else scene.metric_scale
         h5.attrs["has_poses"] = scene.has_poses

@@ -9,52 +9,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-from usvc.core.h5io import read_h5
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error
 from usvc.core.scene import Scene
+from usvc.relocalize.queries_file import (  # noqa: F401  (queries.h5's readers, re-exported)
+    REFINEMENT_DATASETS,
+    QueryStats,
+    RefinementRecords,
+    read_query_stats,
+    read_refinement_records,
+)
 
 PER_QUERY_COLUMNS: tuple[str, ...] = (
     "name", "rot_deg", "trans", "trans_cm", "failed", "inliers",
     "gt_x", "gt_y", "gt_z", "est_x", "est_y", "est_z",
 )
-
-
-@dataclass(frozen=True)
-class QueryStats:
-    """What the relocalize stage reports for one query besides its pose."""
-
-    inliers: int
-    seconds: float | None  # total time for this query (None: not recorded in queries.h5)
-    success: bool
-
-
-def read_query_stats(path: Path | str) -> dict[str, QueryStats]:
-    """Read `queries.h5` (datasets name, inliers, success; seconds when recorded) into {name: QueryStats}."""
-    path = Path(path)
-    if not path.is_file():
-        raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
-    with read_h5(path, "query statistics") as h5:
-        missing = [k for k in ("name", "inliers", "success") if k not in h5]
-        if missing:
-            raise UsvcError(f"{path}: missing dataset(s) {missing}")
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
-        inliers, success = h5["inliers"][()], h5["success"][()]
-        seconds = h5["seconds"][()] if "seconds" in h5 else [None] * len(names)
-    if not (len(names) == len(inliers) == len(seconds) == len(success)):
-        raise UsvcError(f"{path}: datasets name/inliers/seconds/success differ in length "
-                        f"({len(names)}, {len(inliers)}, {len(seconds)}, {len(success)})")
-    if len(set(names)) != len(names):
-        raise UsvcError(f"{path}: duplicate query names")
-    return {n: QueryStats(int(i), None if s is None else float(s), bool(ok))
-            for n, i, s, ok in zip(names, inliers, seconds, success)}
 
 
 def _check_names(kind: str, names: Any, queries: set[str], scene: str) -> None:
@@ -114,49 +88,6 @@ def evaluate_poses(
         for i, f in enumerate(queries)
     ]
     return summary, rows
-
-
-REFINEMENT_DATASETS: tuple[str, ...] = ("initial_R", "initial_t", "refine_iterations", "refine_kept")
-
-
-@dataclass(frozen=True)
-class RefinementRecords:
-    """Per-query refinement records of `queries.h5`: the dense pose before refinement and what it did."""
-
-    names: list[str]
-    success: np.ndarray  # (Q,) bool
-    initial_R: np.ndarray  # (Q,3,3), NaN for failed queries
-    initial_t: np.ndarray  # (Q,3)
-    iterations: np.ndarray  # (Q,) int
-    kept: np.ndarray  # (Q,) bool
-
-
-def read_refinement_records(path: Path | str) -> RefinementRecords | None:
-    """The refinement datasets of `queries.h5`, or None for a file written before refinement existed."""
-    path = Path(path)
-    if not path.is_file():
-        raise UsvcError(f"query statistics not found: {path} (run the relocalize stage first)")
-    with read_h5(path, "query statistics") as h5:
-        present = [k for k in REFINEMENT_DATASETS if k in h5]
-        if not present:
-            return None
-        missing = [k for k in ("name", "success", *REFINEMENT_DATASETS) if k not in h5]
-        if missing:
-            raise UsvcError(f"{path}: has refinement records but lacks dataset(s) {missing}")
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["name"][()]]
-        rec = RefinementRecords(names, np.asarray(h5["success"][()], bool),
-                                np.asarray(h5["initial_R"][()], np.float64),
-                                np.asarray(h5["initial_t"][()], np.float64),
-                                np.asarray(h5["refine_iterations"][()], np.int64),
-                                np.asarray(h5["refine_kept"][()], bool))
-    q = len(names)
-    shapes = {"success": (rec.success.shape, (q,)), "initial_R": (rec.initial_R.shape, (q, 3, 3)),
-              "initial_t": (rec.initial_t.shape, (q, 3)), "refine_iterations": (rec.iterations.shape, (q,)),
-              "refine_kept": (rec.kept.shape, (q,))}
-    for key, (got, want) in shapes.items():
-        if got != want:
-            raise UsvcError(f"{path}: dataset {key} has shape {got}, expected {want} for {q} queries")
-    return rec
 
 
 def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[int] | np.ndarray) -> dict[str, float]:

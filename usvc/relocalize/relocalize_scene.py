@@ -7,15 +7,14 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from tqdm import tqdm
 
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import write_h5
 from usvc.core.pose_errors import write_poses_txt
 from usvc.core.scene import Frame
 from usvc.metrics.evaluate import refinement_summary
+from usvc.relocalize.queries_file import write_queries
 from usvc.relocalize.relocalizer import PoseEstimate, Relocalizer
 
 log = logging.getLogger(__name__)
@@ -36,19 +35,10 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
     write_poses_txt(out_dir / "poses.txt", [frames[i].name for i in ok],
                     np.array([results[i].R for i in ok]).reshape(-1, 3, 3),
                     np.array([results[i].t for i in ok]).reshape(-1, 3))
-    with write_h5(out_dir / "queries.h5") as h5:
-        h5.create_dataset("name", data=np.array([f.name for f in frames], dtype=object), dtype=h5py.string_dtype())
-        h5["success"] = np.array([r.success for r in results])
-        h5["inliers"] = np.array([r.inliers for r in results], dtype=np.int64)
-        h5["cells"] = np.array([r.cells for r in results], dtype=np.int64)
-        # Refinement records: the dense RANSAC pose before refinement (NaN where it failed), so the
-        # metrics stage can score "refinement off" from the same run.
-        h5["refine_iterations"] = np.array([r.refine_iterations for r in results], dtype=np.int64)
-        h5["refine_kept"] = np.array([r.refine_kept for r in results], dtype=bool)
-        h5["initial_R"] = np.array([r.initial_R if r.success else np.full((3, 3), np.nan) for r in results],
-                                   dtype=np.float64).reshape(-1, 3, 3)
-        h5["initial_t"] = np.array([r.initial_t if r.success else np.full(3, np.nan) for r in results],
-                                   dtype=np.float64).reshape(-1, 3)
+    write_queries(out_dir / "queries.h5", [f.name for f in frames], [r.success for r in results],
+                  [r.inliers for r in results], [r.cells for r in results],
+                  [r.refine_iterations for r in results], [r.refine_kept for r in results],
+                  [r.initial_R for r in results], [r.initial_t for r in results])
     # Timings are not part of the artifact (two runs that give the same poses give the same bytes);
     # the stage reports them in relocalize.timing.json.
     records = {f.name: {k: v for k, v in r.to_json().items() if k != "seconds"} for f, r in zip(frames, results)}

@@ -9,15 +9,36 @@ import cv2
 import numpy as np
 
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import read_h5, write_h5
+from usvc.core.h5io import Field, read_h5, write_h5
 from usvc.core.scene import Camera, Frame
 from usvc.render.novel_views import NovelView
+
+RENDER_FORMAT, RENDER_VERSION = "usvc-render", 1
+_PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
+# Every dataset of render.h5 with its attributes; docs/artifacts.md lists the same. Row i of the
+# per-view datasets is images/<iiii>.png.
+RENDER_SCHEMA: dict[str, Field] = {
+    "R": Field("1", "world-to-camera rotation of the rendered view: x_cam = R x_world + t, OpenCV camera axes "
+                    "(x right, y down, z forward)", "world->camera"),
+    "t": Field("scene units", "world-to-camera translation of the rendered view: x_cam = R x_world + t", "camera"),
+    "K": Field("px", f"intrinsic matrix of the rendered view; {_PIXELS}", "camera->image"),
+    "size": Field("px", "width, height of the rendered image", "image"),
+    "source": Field("1", "mapping image (prepared name, fixed-length UTF-8 bytes) whose pose the view was "
+                         "perturbed from"),
+    "angle_deg": Field("deg", "rotation angle between the view and its source pose"),
+    "depth": Field("scene units", "rendered expected depth (alpha-weighted z along the optical axis) per pixel, "
+                                  "0 where nothing was rendered (fp16)", "camera"),
+    "obs/offset": Field("1", "CSR offsets: the keypoint observations of view i are obs/keypoint, obs/uv rows "
+                             "offset[i]:offset[i+1]; length views + 1"),
+    "obs/keypoint": Field("1", "keypoint index: row of keypoints.h5 keypoints/* (not a COLMAP id)"),
+    "obs/uv": Field("px", f"projection of the visible keypoint into the rendered view; {_PIXELS}", "image"),
+}
 
 
 def write_rendered_views(out_dir: Path, views: list[NovelView]) -> None:
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     offsets = np.cumsum([0] + [len(v.keypoint_ids) for v in views])
-    with write_h5(out_dir / "render.h5") as h5:
+    with write_h5(out_dir / "render.h5", RENDER_SCHEMA, RENDER_FORMAT, RENDER_VERSION) as h5:
         h5["R"] = np.stack([v.R for v in views])
         h5["t"] = np.stack([v.t for v in views])
         h5["K"] = np.stack([v.K for v in views])

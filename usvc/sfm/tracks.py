@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from usvc.core.errors import SfmError
-from usvc.core.h5io import read_h5, write_h5
+from usvc.core.h5io import Field, read_h5, write_h5
 
 
 @dataclass
@@ -91,6 +91,38 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
     )
 
 
+TRACKS_FORMAT, TRACKS_VERSION = "usvc-tracks", 1
+PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
+
+# The `images` group of tracks.h5 and keypoints.h5: the registered mapping images.
+IMAGES_SCHEMA: dict[str, Field] = {
+    "images/name": Field("1", "mapping image name, relative to prepared/images; obs/image indexes these rows"),
+    "images/R_world_to_cam": Field(
+        "1", "world-to-camera rotation of the registered image: x_cam = R x_world + t, OpenCV camera "
+             "axes (x right, y down, z forward)", "world->camera"),
+    "images/t_world_to_cam": Field(
+        "scene units", "world-to-camera translation: x_cam = R x_world + t (the world origin in camera "
+                       "coordinates)", "camera"),
+    "images/K": Field("px", f"intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of the prepared "
+                            f"(pinhole) image; {PIXELS}", "camera->image"),
+}
+
+TRACKS_SCHEMA: dict[str, Field] = {
+    **IMAGES_SCHEMA,
+    "points/id": Field("1", "COLMAP point3D id of the point (as in sfm/model/points3D.bin)"),
+    "points/xyz": Field("scene units", "triangulated 3D point position", "world"),
+    "points/rgb": Field("1", "point colour R, G, B in 0..255 (COLMAP's, from the mapping images)"),
+    "points/error": Field("px", "mean reprojection error of the point over its track (COLMAP's)"),
+    "points/track_offset": Field("1", "CSR offsets: the observations of point k are obs/* rows "
+                                      "track_offset[k]:track_offset[k+1]; length points + 1"),
+    "obs/image": Field("1", "image of the observation: row of images/*"),
+    "obs/uv": Field("px", f"measured SIFT keypoint position of the observation; {PIXELS}", "image"),
+    "obs/error": Field("px", "reprojection error of this observation: distance from the projection of "
+                             "points/xyz to obs/uv"),
+    "obs/descriptor": Field("1", "SIFT descriptor of the observation (COLMAP's, uint8, 128 values)"),
+}
+
+
 def write_images_group(h5: h5py.File, tracks: Tracks) -> None:
     """The mapping images' names and cameras, shared by every track-derived HDF5."""
     img = h5.create_group("images")
@@ -99,7 +131,8 @@ def write_images_group(h5: h5py.File, tracks: Tracks) -> None:
 
 
 def write_tracks(path: Path, tracks: Tracks) -> None:
-    with write_h5(path) as h5:
+    """tracks.h5: every dataset carries units/description/frame attributes (TRACKS_SCHEMA)."""
+    with write_h5(path, TRACKS_SCHEMA, TRACKS_FORMAT, TRACKS_VERSION) as h5:
         write_images_group(h5, tracks)
         pts = h5.create_group("points")
         pts["id"], pts["xyz"], pts["rgb"], pts["error"] = tracks.point_id, tracks.xyz, tracks.rgb, tracks.error
