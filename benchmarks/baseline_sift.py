@@ -3,8 +3,10 @@
 Needs the scene's prepare and sfm stages (it reads the prepared pinhole images, the split and the
 median scene depth from them, and uses the same `sfm` options), then localizes every query once per
 RANSAC seed (`usvc/analysis/baseline_sift.py` says how) and scores the poses exactly as the
-metrics stage does. Writes results/<scene>/baseline.json: per-seed summaries, their mean and
-standard deviation, timings, and the queries it could not localize with the reason.
+metrics stage does. Writes results/<scene>/baseline.json (or `--out`; diagnose_map.py reads it
+there): per-seed summaries, their mean and standard deviation, timings, and the queries it could
+not localize with the reason; the same report, with the command line and the machine context,
+also goes to results/benchmarks/baseline_sift_<scene name>.json.
 
 Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [override ...]
 (overrides are Hydra's, e.g. scene.name=office_opencv scene.path=data/raw/office_opencv)
@@ -22,6 +24,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _report import write_report  # noqa: E402
 
 from usvc.analysis.baseline_sift import sift_pnp_baseline  # noqa: E402
 from usvc.core.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
@@ -77,6 +81,7 @@ def main() -> None:
     print(f"{scene.name}: SIFT + PnP over seeds {args.seeds} ({mean['n_queries']:.0f} queries) -> {out}")
     for k in keys:
         print(f"  {k:22s} {mean[k]:.4g} ± {std[k]:.2g}")
+    print(f"-> {write_report(f'baseline_sift_{scene.name}', report)}")
 
 
 if __name__ == "__main__":

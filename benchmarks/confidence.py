@@ -12,6 +12,10 @@ An answer is right when it is within 5° and 3 % of the median scene depth of th
 precision of the answers it accepts and the recall of right answers it keeps, and picks the
 smallest threshold at which precision >= --precision.
 
+Prints the report without its per-threshold table and per-answer rows; writes all of it to
+results/benchmarks/confidence_<scene>[+<scene> ...].json (the --scene-dir folder names, in
+order), with the command line and the machine context, and to --out when given.
+
 Run: python benchmarks/confidence.py --scene-dir data/office --scene-dir data/mini \
         --foreign ../shared/scenes/bird --out confidence.json
 """
@@ -28,6 +32,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.exif import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
@@ -153,6 +159,7 @@ def main() -> None:
     print(json.dumps({k: v for k, v in report.items() if k not in ("table", "answers")}, indent=1))
     if args.out:
         args.out.write_text(text + "\n")
+    write_report("confidence_" + "+".join(scene_of(s) for s in args.scene_dir), report)
 
 
 if __name__ == "__main__":

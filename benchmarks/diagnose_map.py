@@ -7,7 +7,9 @@ for choosing settings. The metrics come from the scene's `metrics.json` and `tra
 `baseline.json` when benchmarks/baseline_sift.py has run). Method notes: usvc/analysis/diagnosis.py.
 
 Run: python benchmarks/diagnose_map.py --scene bird [--views 16] [override ...]
-Writes results/<scene name>/diagnosis.json.
+Writes results/<scene name>/diagnosis.json (or --out), and the same report with the command line
+and the machine context to results/benchmarks/diagnose_map_<scene name>.json; prints its fit and
+track-retrieval parts.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _report import write_report  # noqa: E402
 
 from usvc.analysis.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
 from usvc.buffer.build import read_buffer_attrs, read_buffer_image_names  # noqa: E402
@@ -112,6 +116,7 @@ def main() -> None:
     out = args.out or Path(cfg.results_dir) / cfg.scene.name / "diagnosis.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(json.dumps({k: report[k] for k in ("fit", "track_retrieval", "track_retrieval_heldout")}, indent=1))
+    write_report(f"diagnose_map_{cfg.scene.name}", report)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@ twice with the same map: with its calibrated focal length, and with ``intrinsics
 estimated with the pose, pycolmap P4Pf + refinement, principal point at the image centre).
 
 Prints (and with ``--out`` writes) JSON: the usual accuracy summary for both, and the relative
-focal error of the estimate per query. Run after the relocalize stage of a scene, e.g.
+focal error of the estimate per query (median and max). Writes the same, with the command line
+and the machine context, to results/benchmarks/focal_estimation_<scene folder name>.json.
+Run after the relocalize stage of a scene, e.g.
 python benchmarks/focal_estimation.py --scene-dir data/office --out focal_office.json
 """
 
@@ -18,6 +20,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
 from usvc.core.scene_io import read_scene_h5  # noqa: E402
@@ -57,6 +61,7 @@ def main() -> None:
     print(text)
     if args.out:
         args.out.write_text(text + "\n")
+    write_report(f"focal_estimation_{scene_of(args.scene_dir)}", report)
 
 
 if __name__ == "__main__":

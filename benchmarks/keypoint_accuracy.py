@@ -4,7 +4,10 @@ The bundle loss exists to put the coordinate predicted from a keypoint's feature
 keypoint's triangulated position X_k (multi-view), where the reprojection loss only constrains
 it to the observing ray. This reads the buffer's keypoint tuples (k, d_k, view, u_obs), runs a
 map's head on d_k, and prints, per map, the 3D error |y - X_k| (in units of the median scene
-depth) and the reprojection error into the observing view (px), medians and 90th percentiles.
+depth) and the reprojection error into the observing view (px), medians and 90th percentiles, one
+JSON line per map. Writes the buffer and every map's line, with the command line and the machine
+context, to results/benchmarks/keypoint_accuracy_<scene>.json (<scene>: the folder holding the
+buffer's buffer/ folder, data/<scene>/buffer/buffer.h5; else the buffer file's stem).
 Run: python benchmarks/keypoint_accuracy.py --buffer data/mini/buffer/buffer.h5 MAP [MAP ...]
 """
 
@@ -19,6 +22,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import scene_of, write_report  # noqa: E402
 
 from usvc.buffer.build import read_buffer  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
@@ -52,8 +57,11 @@ def main() -> None:
     parser.add_argument("--buffer", type=Path, required=True)
     parser.add_argument("maps", type=Path, nargs="+")
     args = parser.parse_args()
+    rows = []
     for m in args.maps:
-        print(json.dumps(keypoint_errors(m, args.buffer)), flush=True)
+        rows.append(keypoint_errors(m, args.buffer))
+        print(json.dumps(rows[-1]), flush=True)
+    write_report(f"keypoint_accuracy_{scene_of(args.buffer, 'buffer')}", {"buffer": str(args.buffer), "maps": rows})
 
 
 if __name__ == "__main__":

@@ -2,7 +2,10 @@
 
 Times `train_head` for a few hundred iterations on a real buffer with keypoint tuples, once with
 train.bundle_weight=0 (method=single) and once with the configured bundle sampling, and prints
-seconds per iteration, the ratio and the projected time of a full run. Run it on an otherwise
+seconds per iteration, the ratio and the projected time of a full run. Writes the same figures,
+with the buffer, the command line and the machine context, to
+results/benchmarks/mapping_cost_<scene>.json (<scene>: the folder holding the buffer's buffer/
+folder, data/<scene>/buffer/buffer.h5; else the buffer file's stem). Run it on an otherwise
 idle machine: python benchmarks/mapping_cost.py --buffer data/mini/buffer/buffer.h5 [--iterations 300]
 """
 
@@ -19,6 +22,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import scene_of, write_report  # noqa: E402
 
 from usvc.buffer.build import read_buffer  # noqa: E402
 from usvc.pipeline.config import register_configs  # noqa: E402
@@ -38,16 +43,18 @@ def main() -> None:
     with initialize_config_dir(version_base=None, config_dir=str(ROOT / "conf")):
         cfg = compose("config")
     buf = read_buffer(args.buffer)
-    full = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks)
+    full = TrainOptions(**cfg.train)
     rows = {}
     for method, weight in (("single", 0.0), ("multiview", full.bundle_weight or 1.0)):
         opts = replace(full, iterations=args.iterations, bundle_weight=weight)
         t0 = time.perf_counter()
-        train_head(buf, 1.0, opts)
+        train_head(buf, 1.0, opts, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks)
         per_it = (time.perf_counter() - t0) / args.iterations
         rows[method] = {"seconds_per_iteration": per_it, "projected_full_run_s": per_it * full.iterations}
     rows["multiview_over_single"] = rows["multiview"]["seconds_per_iteration"] / rows["single"]["seconds_per_iteration"]
-    print(json.dumps({"threads": args.threads, "iterations": args.iterations, **rows}, indent=1))
+    result = {"threads": args.threads, "iterations": args.iterations, **rows}
+    print(json.dumps(result, indent=1))
+    write_report(f"mapping_cost_{scene_of(args.buffer, 'buffer')}", {"buffer": str(args.buffer), **result})
 
 
 if __name__ == "__main__":

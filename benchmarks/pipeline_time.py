@@ -12,9 +12,11 @@ committed (and which stages' outputs differ when not).
 
 Without `--fresh`, it runs `python -m stages.<stage> scene=<scene> [overrides]` for the mapping
 and query stages in this checkout, each in its own process, and writes
-`results/<scene>/pipeline_time.json`: seconds and peak resident memory per stage, the mapping
-total (every stage before `relocalize`), and the time per query. Stages rewrite their usual
-artifacts; `dvc status` then shows whether they still match the lock.
+`results/<scene>/pipeline_time.json` (or `--out`): seconds and peak resident memory per stage, the
+mapping total (every stage before `relocalize`), and the time per query; a copy, with the command
+line and the machine context, goes to `results/benchmarks/pipeline_time_<scene>.json` (<scene>: the
+`scene.name` override when given). Stages rewrite their usual artifacts; `dvc status` then shows
+whether they still match the lock.
 
     python benchmarks/pipeline_time.py --scene office
     python benchmarks/pipeline_time.py --scene mini --threads 1 -- train.iterations=3000
@@ -35,6 +37,7 @@ import time
 from pathlib import Path
 
 import yaml
+from _report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 MAPPING = ("prepare", "sfm", "keypoints", "buffer", "train")
@@ -187,7 +190,8 @@ def main() -> None:
     out = args.out or ROOT / "results" / name / "pipeline_time.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"mapping ({' + '.join(result['mapping_stages'])}): {mapping:.1f} s -> {out}")
+    copy = write_report(f"pipeline_time_{name}", result)
+    print(f"mapping ({' + '.join(result['mapping_stages'])}): {mapping:.1f} s -> {out}, {copy}")
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ Each trial: a 640x480 PINHOLE camera (f = 525) at a random pose, an 80x60 grid o
 (8j + 4.5, 8i + 4.5) in COLMAP pixels, a random depth map in 1–4 m, inliers back-projected from
 their pixel (half of them from a pixel moved by 1 px Gaussian noise) with 1 cm 3D noise, and
 outliers drawn uniformly from the box of the inlier points. Prints one row per backend and
-outlier ratio. Run: python benchmarks/pnp_solvers.py [--trials 30] [--ratios 0.3 0.6 0.85]
+outlier ratio, and writes the rows (unrounded), the trial setup, the command line and the machine
+context to results/benchmarks/pnp_solvers.json.
+Run: python benchmarks/pnp_solvers.py [--trials 30] [--ratios 0.3 0.6 0.85]
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
@@ -64,6 +68,7 @@ def main() -> None:
               f"{'<5cm,5deg':>9} {'med ms':>8} {'failed':>6}")
     print(header)
     print("-" * len(header))
+    rows = []
     for backend in BACKENDS:
         for ratio in args.ratios:
             rng = np.random.default_rng(args.seed)  # same scenes for every backend
@@ -83,6 +88,16 @@ def main() -> None:
             within = np.mean((rot_a < 5.0) & (trans_a < 5.0)) * 100.0
             print(f"{backend:<9} {ratio * 100:>7.0f}% {ace_median(rot_a):>13.4f} {ace_median(trans_a):>14.3f} "
                   f"{within:>8.1f}% {ace_median(np.array(ms)):>8.1f} {failed:>6d}")
+            rows.append({"backend": backend, "outlier_ratio": ratio, "median_rot_deg": ace_median(rot_a),
+                         "median_trans_cm": ace_median(trans_a), "within_5cm_5deg_pct": float(within),
+                         "median_ms": ace_median(np.array(ms)), "failed": failed})
+    write_report("pnp_solvers", {
+        "trials": args.trials, "seed": args.seed, "ratios": args.ratios,
+        "camera": {"model": CAMERA.model, "width": CAMERA.width, "height": CAMERA.height,
+                   "params": list(CAMERA.params)},
+        "grid": "80x60 cell centres (8j + 4.5, 8i + 4.5)", "depth_m": [1.0, 4.0],
+        "pixel_noise_fraction": PIXEL_NOISE_FRACTION, "pixel_noise_px": PIXEL_NOISE_PX, "point_noise_m": POINT_NOISE_M,
+        "max_error_px": 10.0, "median_rule": "element N//2 of the sorted values", "rows": rows})
 
 
 if __name__ == "__main__":

@@ -7,7 +7,9 @@ the cell centres of a PINHOLE camera (f = 0.82 x width) looking at a tilted plan
 1 cm 3D noise, 30 % of the cells replaced by points drawn from the box of the others. Each number
 is the median over --runs queries after --warmup untimed ones; "total" is the median of the
 per-query sums, so it need not equal the sum of the medians. GFLOP/s is the encoder's only
-(`encoder_flops` over its median time). Run:
+(`encoder_flops` over its median time). Prints a table; writes its rows (unrounded), the setup,
+the command line and the machine context to results/benchmarks/relocalization_speed_<device>.json
+(<device>: cpu or cuda, the one that ran). Run:
 python benchmarks/relocalization_speed.py [--runs 20] [--device cuda] [--sizes 320x240 640x480]
 """
 
@@ -26,6 +28,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _report import write_report  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
@@ -143,14 +146,16 @@ def main() -> None:
         print(f"note: --device {args.device} requested but CUDA is not available; using cpu")
         device = torch.device("cpu")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    load = os.getloadavg()[0]  # before the runs, as printed
     print(f"device {device} ({name}), torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}; "
+          f"{os.cpu_count()} cores, load avg {load:.1f}; "
           f"median of {args.runs} runs after {args.warmup} warm-up; PnP: opencv, "
           f"{OUTLIER_RATIO:.0%} outliers")
     header = (f"{'model':<8} {'weights':<8} {'size':>8} {'encoder ms':>10} {'head ms':>8} {'pnp ms':>8} "
               f"{'total ms':>9} {'GFLOP':>6} {'GFLOP/s':>8} {'pnp ok':>7}")
     print(header)
     print("-" * len(header))
+    rows = []
     for model in MODELS:
         width, head_width, head_blocks = model_config(model)
         encoder, source = load_encoder(width)
@@ -164,6 +169,16 @@ def main() -> None:
             print(f"{model:<8} {source:<8} {f'{w}x{h}':>8} {r['encoder']:>10.1f} {r['head']:>8.1f} "
                   f"{r['pnp']:>8.1f} {r['total']:>9.1f} {gflop:>6.1f} {gflop / r['encoder'] * 1e3:>8.1f} "
                   f"{solved:>7}")
+            rows.append({"model": model, "weights": source, "encoder_width": width, "head_width": head_width,
+                         "head_blocks": head_blocks, "size": f"{w}x{h}", "encoder_ms": r["encoder"],
+                         "head_ms": r["head"], "pnp_ms": r["pnp"], "total_ms": r["total"], "encoder_gflop": gflop,
+                         "encoder_gflops_per_s": gflop / r["encoder"] * 1e3, "pnp_solved": int(r["solved"]),
+                         "runs": args.runs})
+    write_report(f"relocalization_speed_{device.type}", {
+        "device": str(device), "device_name": name, "torch_threads": torch.get_num_threads(),
+        "cores": os.cpu_count(), "load_avg_1min_before": load, "runs": args.runs, "warmup": args.warmup,
+        "median_rule": "element N//2 of the sorted values", "pnp_backend": "opencv", "outlier_ratio": OUTLIER_RATIO,
+        "point_noise_m": POINT_NOISE_M, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@ mapping photos' camera centres) brings the SfM frame into the given one; the rep
 rotation and centre errors per split, centre errors also as a fraction of the scene extent
 (median distance of the centres from their mean). With ``--relocalized``, query poses that the
 SfM-posed scene's map produced are mapped by the same similarity into the given frame and scored
-against the given poses (the usual 5° / 3 % of median depth rule). Writes JSON to stdout or ``--out``.
+against the given poses (the usual 5° / 3 % of median depth rule). Prints the JSON, writes it to
+``--out`` when given, and with the command line and the machine context to
+results/benchmarks/sfm_posing_<scene>.json (<scene>: the SfM-posed scene, data/<scene>/prepared).
 
 Run: python benchmarks/sfm_posing.py --given data/office/prepared --sfm data/office_photos/prepared
 """
@@ -21,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.pose_errors import (  # noqa: E402
     read_poses_txt,
@@ -81,6 +85,7 @@ def main() -> None:
     print(text)
     if args.out:
         args.out.write_text(text + "\n")
+    write_report(f"sfm_posing_{scene_of(args.sfm, 'prepared')}", report)
 
 
 if __name__ == "__main__":

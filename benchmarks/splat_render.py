@@ -3,7 +3,9 @@
 Renders mapping views of a scene with the Gaussians of its `gaussians` stage at a given width,
 on CPU (and on CUDA, with every available backend, when there is a GPU), and prints time per
 forward, per forward + backward (what one fitting iteration costs, less the optimiser step), the
-tile/Gaussian pairs, and peak process memory. Run it on an otherwise idle machine:
+tile/Gaussian pairs, and peak process memory; writes the same figures (unrounded), the command line
+and the machine context to results/benchmarks/splat_render_<scene>_<render width>.json. Run it on an otherwise
+idle machine:
     python benchmarks/splat_render.py --scene mini --width 160 [--views 10]
 """
 
@@ -18,6 +20,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _report import write_report  # noqa: E402
 
 from usvc.core.scene_io import read_scene_h5  # noqa: E402
 from usvc.gaussians.fit import image_loss, load_fit_images  # noqa: E402
@@ -55,6 +59,7 @@ def main() -> None:
     gid, _, _, _ = _bin_tiles(proj, v0.width, v0.height, args.tile)
     print(f"{args.scene}: {len(g)} Gaussians, {int((proj.radii > 0).sum())} visible in view 0, "
           f"{len(gid)} tile pairs, {v0.width}x{v0.height}, {torch.get_num_threads()} CPU threads")
+    rows = []
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     for dev in devices:
         gd = g.to(dev)
@@ -71,7 +76,15 @@ def main() -> None:
                 fwd = _time(fn, vd, False, sync)
             both = _time(fn, vd, True, sync)
             print(f"  {dev:4s} {name:6s} forward {fwd:8.1f} ms   forward+backward {both:8.1f} ms   (median of {len(vd)} views)")
-    print(f"peak process memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+            rows.append({"device": dev, "backend": name, "forward_ms": fwd, "forward_backward_ms": both,
+                         "views": len(vd)})
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak process memory {peak_mb:.0f} MB")
+    write_report(f"splat_render_{args.scene}_{v0.width}", {
+        "scene": args.scene, "data_dir": args.data_dir, "gaussians": len(g),
+        "visible_in_view0": int((proj.radii > 0).sum()), "tile_pairs_view0": len(gid), "tile": args.tile,
+        "width": v0.width, "height": v0.height, "cpu_threads": torch.get_num_threads(),
+        "median_rule": "element N//2 of the sorted times", "rows": rows, "peak_memory_mb": peak_mb})
 
 
 if __name__ == "__main__":

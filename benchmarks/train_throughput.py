@@ -70,18 +70,18 @@ def main() -> None:
         raise SystemExit(f"{buffer_file} is missing: run the pipeline up to the buffer stage first")
     buf = read_buffer(buffer_file)
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
-    configured = TrainOptions(**cfg.train, head_width=cfg.model.head_width, head_blocks=cfg.model.head_blocks,
-                              seed=cfg.seed)
+    configured = TrainOptions(**cfg.train)
+    head_width, head_blocks = cfg.model.head_width, cfg.model.head_blocks
     timed = dataclasses.replace(configured, iterations=args.iterations)
 
     samples = configured.batch_size + (configured.bundle_groups_per_batch * configured.bundle_obs_per_group
                                        if configured.bundle_weight > 0 else 0)
-    macs = head_macs_per_sample(buf.features.shape[1], configured.head_width, configured.head_blocks)
+    macs = head_macs_per_sample(buf.features.shape[1], head_width, head_blocks)
     gflop_per_iteration = 3 * 2 * samples * macs / 1e9  # forward, and backward's two products per layer
-    peak = matmul_gflops(samples, configured.head_width)
+    peak = matmul_gflops(samples, head_width)
 
     start = time.perf_counter()
-    train_head(buf, median_depth, timed)
+    train_head(buf, median_depth, timed, head_width=head_width, head_blocks=head_blocks, seed=cfg.seed)
     seconds = time.perf_counter() - start
     per_second = args.iterations / seconds
     achieved = per_second * gflop_per_iteration
