@@ -1,4 +1,4 @@
-"""Stage: score the relocalized query poses against ground truth; write metrics.json and plots."""
+"""Stage: score the relocalized query poses against ground truth; write metrics.json, headline.json and plots."""
 
 import logging
 import time
@@ -10,9 +10,11 @@ from usvc.core.atomic import atomic_dir
 from usvc.core.pose_errors import read_poses_txt
 from usvc.core.scene_io import read_scene_h5
 from usvc.metrics.evaluate import (
+    HEADLINE_FILE,
     PER_QUERY_COLUMNS,
     evaluate_initial_poses,
     evaluate_poses,
+    headline_figures,
     read_query_stats,
     read_refinement_records,
 )
@@ -52,6 +54,7 @@ def main(cfg: DictConfig) -> None:
     # "sfm": the queries' poses were estimated by SfM here (pseudo ground truth), not given
     write_json(metrics_path, {**summary, "ground_truth": scene.pose_source,
                               "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+    write_json(metrics_path.with_name(HEADLINE_FILE), headline_figures(summary, metric=scene.metric_scale is not None))
     headline = "acc_5cm_5deg" if scene.metric_scale is not None else "acc_rel_5cm_5deg"
     log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg%s",
              scene.name, headline, summary[headline], summary["n_queries"], summary["n_failed"],

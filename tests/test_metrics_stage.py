@@ -26,14 +26,18 @@ from usvc.core.pose_errors import write_poses_txt
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_io import write_scene_h5
 from usvc.metrics.evaluate import (
+    HEADLINE_KEYS_METRIC,
+    HEADLINE_KEYS_RELATIVE,
     PER_QUERY_COLUMNS,
     QueryStats,
     evaluate_initial_poses,
     evaluate_poses,
+    headline_figures,
     read_query_stats,
     read_refinement_records,
 )
 from usvc.metrics.plots import error_cdf, principal_axes, write_plots
+from usvc.pipeline.metrics_file import TIMING_KEYS
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import Tracks, write_tracks
 
@@ -188,6 +192,19 @@ def test_non_metric_scene_reports_relative_figures_only():
     assert summary["acc_5cm_5deg"] is None and summary["median_trans_cm"] is None
     assert summary["acc_5deg_3pct"] == pytest.approx((N_QUERIES - 1) / N_QUERIES)
     assert all(math.isnan(r["trans_cm"]) for r in rows)
+
+
+def test_headline_is_the_same_few_figures_for_every_scene():
+    metric, _ = evaluate_poses(_scene(), _exact(_scene()), _stats(_scene()), median_depth=2.0)
+    relative, _ = evaluate_poses(_scene(None), _exact(_scene(None)), _stats(_scene(None)), median_depth=2.0)
+    head = headline_figures(metric, metric=True)
+    assert list(head) == list(HEADLINE_KEYS_METRIC) and head["acc_5cm_5deg"] == 1.0 and head["n_queries"] == N_QUERIES
+    head = headline_figures(relative, metric=False)
+    assert list(head) == list(HEADLINE_KEYS_RELATIVE) and head["acc_rel_5cm_5deg"] == 1.0
+    assert all(v is not None for v in head.values())
+    # the same figures, scaled to a 1.5 m median depth
+    assert [k.replace("_rel", "") for k in HEADLINE_KEYS_RELATIVE] == list(HEADLINE_KEYS_METRIC)
+    assert not any(k in TIMING_KEYS for k in HEADLINE_KEYS_METRIC + HEADLINE_KEYS_RELATIVE)
 
 
 def test_unknown_estimate_name_is_an_error():
@@ -387,6 +404,11 @@ def test_stage_writes_metrics_and_plots(inputs):
     for name in ("per_query.csv", "trans_cdf.csv", "rot_cdf.csv", "cdf.png", "trajectory.png"):
         assert (inputs / "results/mini/plots" / name).stat().st_size > 0, name
     assert not any(k.startswith(("initial_", "refine_")) for k in metrics)  # a queries.h5 from before refinement
+    # the headline (dvc metrics show): a few of metrics.json's figures, no timings
+    headline = json.loads((inputs / "results/mini/headline.json").read_text())
+    assert list(headline) == sorted(HEADLINE_KEYS_METRIC)
+    assert all(headline[k] == metrics[k] for k in headline)
+    assert not (inputs / "results/mini/headline.timing.json").exists()
 
 
 def test_stage_scores_initial_poses_when_recorded(inputs):
@@ -412,6 +434,7 @@ def test_stage_multirun_leaves_the_tracked_results_alone(inputs):
     assert len(jobs) == 2
     for job in jobs:
         assert json.loads((job / "metrics.json").read_text())["n_queries"] == N_QUERIES
+        assert json.loads((job / "headline.json").read_text())["n_queries"] == N_QUERIES
         assert (job / "plots" / "trajectory.png").is_file()
 
 

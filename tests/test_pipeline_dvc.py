@@ -90,6 +90,11 @@ def test_repro_produces_every_artifact(repo):
     assert metrics["n_queries"] == 20 and 0.0 <= metrics["acc_5cm_5deg"] <= 1.0
     shown = _run([sys.executable, "-m", "dvc", "metrics", "show"], repo).stdout
     assert "acc_5cm_5deg" in shown and "median_rot_deg" in shown
+    # the default table is the headline; each stage's figures are shown when named
+    assert "results/mini/headline.json" in shown and "median_reprojection_error_px" not in shown
+    assert "mean_inliers" not in shown and "final_loss" not in shown
+    detail = _run([sys.executable, "-m", "dvc", "metrics", "show", "results/mini/sfm.json"], repo).stdout
+    assert "median_reprojection_error_px" in detail
     assert _status(repo) == set()
 
 

@@ -96,6 +96,25 @@ def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[i
             "refine_mean_iterations": float(np.mean(iterations)) if len(iterations) else 0.0}
 
 
+# The few figures `dvc metrics show` / `dvc exp show` print by default: accuracy at the three
+# 7-Scenes thresholds, the median errors and the failures, in results/<scene>/headline.json beside
+# metrics.json (all figures). dvc.yaml lists only this file under `metrics:`. A scene without metric
+# scale reports the same figures scaled to a 1.5 m median depth (acc_rel_*, median_trans_rel_cm).
+HEADLINE_FILE = "headline.json"
+HEADLINE_KEYS_METRIC: tuple[str, ...] = ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "median_trans_cm",
+                                         "median_rot_deg", "n_failed", "n_queries")
+HEADLINE_KEYS_RELATIVE: tuple[str, ...] = ("acc_rel_5cm_5deg", "acc_rel_2cm_2deg", "acc_rel_1cm_1deg",
+                                           "median_trans_rel_cm", "median_rot_deg", "n_failed", "n_queries")
+
+
+def headline_figures(summary: Mapping[str, Any], metric: bool) -> dict[str, float | int | None]:
+    """The headline subset of an `evaluate_poses` summary: metric figures for a metric scene, else relative ones.
+
+    Every key is present (None where the summary has no value), so every run of a scene has the same columns.
+    """
+    return {k: summary.get(k) for k in (HEADLINE_KEYS_METRIC if metric else HEADLINE_KEYS_RELATIVE)}
+
+
 def _is_headline(key: str, value: object) -> bool:
     """Accuracy and median-error figures with a number: what differs between initial and refined poses."""
     numeric = isinstance(value, (int, float)) and not isinstance(value, bool)

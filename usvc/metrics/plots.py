@@ -3,6 +3,7 @@
 The CSVs use one fixed schema (`error`, `fraction`) so DVC's built-in `linear` template can
 draw every scene the same way and `dvc plots diff` can overlay experiments. Failed queries are
 infinitely wrong (as in the summary), so each CDF tops out at the success rate, not at 1.
+In the PNG, translation and rotation each get an x axis fitted to their own errors (`cdf_x_limit`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
+from usvc.core.pose_errors import (  # noqa: E402
+    DEPTH_RELATIVE_THRESHOLDS,
+    METRIC_THRESHOLDS,
+)
 
 TRANS_CDF, ROT_CDF, PER_QUERY = "trans_cdf.csv", "rot_cdf.csv", "per_query.csv"
 CDF_PNG, TRAJECTORY_PNG = "cdf.png", "trajectory.png"
@@ -65,42 +70,109 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, axes
 
 
-def plot_trajectory(path: Path, gt: np.ndarray, est: np.ndarray, failed: np.ndarray, title: str) -> None:
-    """Ground-truth vs estimated camera centres, each pair joined by a grey line (paper Fig. 5)."""
+# Trajectory styles: ground truth and estimates differ in colour and marker, so the plot reads
+# in grey scale too; failed queries are red.
+_GT_STYLE = {"marker": "o", "s": 30, "facecolors": "none", "edgecolors": "tab:green", "linewidths": 1.2}
+_EST_STYLE = {"marker": "^", "s": 18, "c": "tab:blue"}
+_FAILED_STYLE = {"marker": "X", "s": 30, "c": "tab:red"}
+_ERROR_LINE = {"color": "0.55", "lw": 0.8}
+
+
+def trajectory_figure(gt: np.ndarray, est: np.ndarray, failed: np.ndarray, title: str) -> Any:
+    """Top-down view of ground-truth vs estimated camera centres, each pair joined by a grey line (paper Fig. 5).
+
+    Framed on the ground truth: a wild estimate would otherwise shrink the trajectory to a dot; the
+    legend counts the estimates left outside the frame and the queries with no estimate at all.
+    """
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 3)
+    est = np.asarray(est, dtype=np.float64).reshape(-1, 3)
+    failed = np.asarray(failed, dtype=bool).reshape(-1)
     mean, axes = principal_axes(gt)
     g = (gt - mean) @ axes.T
     e = (est - mean) @ axes.T  # NaN rows (no estimate) stay NaN and are not drawn
+    has_est = np.all(np.isfinite(e), axis=1)
     fig, ax = plt.subplots(figsize=(5.5, 5.0), dpi=_DPI)
-    for gi, ei in zip(g, e):
-        if np.all(np.isfinite(ei)):
-            ax.plot([gi[0], ei[0]], [gi[1], ei[1]], color="0.6", lw=0.8, zorder=1)
-    ax.scatter(g[:, 0], g[:, 1], s=12, c="tab:green", label="ground truth", zorder=2)
-    good = np.all(np.isfinite(e), axis=1)
-    ok, bad = good & ~failed, good & failed
-    ax.scatter(e[ok, 0], e[ok, 1], s=12, c="tab:blue", label="estimate", zorder=3)
+    segments = [[gi, ei] for gi, ei in zip(g[has_est], e[has_est])]
+    for k, (gi, ei) in enumerate(segments):
+        ax.plot([gi[0], ei[0]], [gi[1], ei[1]], zorder=1, label="error (ground truth to estimate)" if k == 0 else None,
+                **_ERROR_LINE)
+    ax.scatter(g[:, 0], g[:, 1], label="ground truth", zorder=2, **_GT_STYLE)
+    ok, bad = has_est & ~failed, has_est & failed
+    ax.scatter(e[ok, 0], e[ok, 1], label="estimate", zorder=3, **_EST_STYLE)
     if bad.any():
-        ax.scatter(e[bad, 0], e[bad, 1], s=16, c="tab:red", marker="x", label="estimate (failed)", zorder=3)
-    # Frame the ground truth: a wild estimate would otherwise shrink the trajectory to a dot.
+        ax.scatter(e[bad, 0], e[bad, 1], label="estimate (failed)", zorder=3, **_FAILED_STYLE)
     lo, hi = g.min(axis=0), g.max(axis=0)
     pad = 0.25 * max(float((hi - lo).max()), 1e-9)
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    (x0, y0), (x1, y1) = lo - pad, hi + pad
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    notes = []
+    outside = has_est & ((e[:, 0] < x0) | (e[:, 0] > x1) | (e[:, 1] < y0) | (e[:, 1] > y1))
+    if outside.any():
+        notes.append(f"{int(outside.sum())} estimate(s) outside the frame")
+    if (~has_est).any():
+        notes.append(f"{int((~has_est).sum())} quer{'y' if (~has_est).sum() == 1 else 'ies'} without an estimate")
+    if notes:
+        ax.plot([], [], " ", label="; ".join(notes))  # a text-only legend entry
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("principal axis 1 (scene units)")
     ax.set_ylabel("principal axis 2 (scene units)")
     ax.set_title(title, fontsize=10)
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
+    return fig
+
+
+def plot_trajectory(path: Path, gt: np.ndarray, est: np.ndarray, failed: np.ndarray, title: str) -> None:
+    fig = trajectory_figure(gt, est, failed, title)
     fig.savefig(path)
     plt.close(fig)
 
 
-def _cdf_axis(ax: Any, errors: np.ndarray, failed: np.ndarray, label: str, threshold: float) -> None:
+# Accuracy thresholds of the summary (pose_errors), drawn on the CDFs where they fall inside the axis.
+METRIC_THRESHOLDS_CM = tuple(sorted({100.0 * m for _, m, _ in METRIC_THRESHOLDS}))
+RELATIVE_THRESHOLDS_PCT = tuple(sorted({100.0 * f for _, f, _ in DEPTH_RELATIVE_THRESHOLDS}))  # the acc_rel_* ones
+ROTATION_THRESHOLDS_DEG = tuple(sorted({d for _, _, d in (*METRIC_THRESHOLDS, *DEPTH_RELATIVE_THRESHOLDS)}))
+# The x axis shows every successful error up to OUTLIER_FACTOR x their 90th percentile (the rest are
+# counted in a corner, not drawn), 10 % past the largest, at a round number ...
+CDF_PERCENTILE, OUTLIER_FACTOR = 90.0, 3.0
+CDF_MIN_SPAN = 1.0  # ... and spans at least this much (1 cm, 1 deg, 1 % of depth): the tightest threshold
+
+
+def _nice_ceil(x: float) -> float:
+    """The smallest 1, 1.5, 2, 2.5, 3, 4, 5, 6, 8 x 10^k at or above x (x > 0)."""
+    exp = 10.0 ** np.floor(np.log10(x))
+    for m in (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0):
+        if m * exp >= x * (1 - 1e-12):
+            return float(m * exp)
+    return float(10.0 * exp)
+
+
+def cdf_x_limit(errors: np.ndarray, failed: np.ndarray | None = None, min_span: float = CDF_MIN_SPAN) -> float:
+    """Right end of a CDF's x axis, from the data: 10 % past the largest successful, finite error that is
+    no outlier (at most OUTLIER_FACTOR x the CDF_PERCENTILE), rounded up to a round number, at least
+    `min_span` (also when nothing succeeded). Translation and rotation each get their own."""
+    e = np.asarray(errors, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(e) if failed is None else np.isfinite(e) & ~np.asarray(failed, dtype=bool).reshape(-1)
+    if not ok.any():
+        return float(min_span)
+    e = e[ok]
+    inliers = e[e <= OUTLIER_FACTOR * float(np.percentile(e, CDF_PERCENTILE))]
+    top = float(inliers.max()) if inliers.size else 0.0
+    return float(min_span) if top <= 0.0 else max(float(min_span), _nice_ceil(1.1 * top))
+
+
+def _cdf_axis(ax: Any, errors: np.ndarray, failed: np.ndarray, label: str, thresholds: Sequence[float]) -> None:
     x, frac = error_cdf(errors, failed)
-    ax.step(x, frac, where="post", color="tab:blue")
-    ax.axvline(threshold, color="0.6", ls="--", lw=0.8)
-    finite = x[1:]
-    upper = max(threshold * 2.0, 1.2 * float(np.percentile(finite, 90))) if finite.size else threshold * 2.0
+    upper = cdf_x_limit(errors, failed)
+    # the last step runs on to the axis' end, so the plateau (the success rate) stays visible
+    ax.step(np.append(x, max(upper, x[-1])), np.append(frac, frac[-1]), where="post", color="tab:blue")
+    for thr in thresholds:
+        if thr <= upper:
+            ax.axvline(thr, color="0.6", ls="--", lw=0.8)
+    beyond = int(np.sum(x[1:] > upper))
+    if beyond:
+        ax.text(0.98, 0.04, f"{beyond} beyond {upper:g}", transform=ax.transAxes, ha="right", fontsize=8, color="0.4")
     ax.set_xlim(0.0, upper)
     ax.set_ylim(0.0, 1.0)
     ax.set_xlabel(label)
@@ -108,13 +180,20 @@ def _cdf_axis(ax: Any, errors: np.ndarray, failed: np.ndarray, label: str, thres
     ax.grid(alpha=0.3)
 
 
-def plot_cdf(path: Path, trans: np.ndarray, trans_label: str, trans_threshold: float,
-             rot: np.ndarray, failed: np.ndarray, title: str) -> None:
+def cdf_figure(trans: np.ndarray, trans_label: str, trans_thresholds: Sequence[float],
+               rot: np.ndarray, failed: np.ndarray, title: str) -> Any:
+    """Translation and rotation error CDFs side by side, each x axis fitted to its own errors."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(8.0, 3.4), dpi=_DPI)
-    _cdf_axis(a, trans, failed, trans_label, trans_threshold)
-    _cdf_axis(b, rot, failed, "rotation error (deg)", 5.0)
+    _cdf_axis(a, trans, failed, trans_label, trans_thresholds)
+    _cdf_axis(b, rot, failed, "rotation error (deg)", ROTATION_THRESHOLDS_DEG)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
+    return fig
+
+
+def plot_cdf(path: Path, trans: np.ndarray, trans_label: str, trans_thresholds: Sequence[float],
+             rot: np.ndarray, failed: np.ndarray, title: str) -> None:
+    fig = cdf_figure(trans, trans_label, trans_thresholds, rot, failed, title)
     fig.savefig(path)
     plt.close(fig)
 
@@ -132,9 +211,10 @@ def write_plots(out_dir: Path, rows: Sequence[dict[str, Any]], columns: Sequence
     rot = np.array([r["rot_deg"] for r in rows], dtype=np.float64)
     trans = np.array([r["trans"] for r in rows], dtype=np.float64)
     if metric_scale is not None:
-        trans_x, label, thr = trans * metric_scale * 100.0, "translation error (cm)", 5.0
+        trans_x, label, thr = trans * metric_scale * 100.0, "translation error (cm)", METRIC_THRESHOLDS_CM
     elif median_depth is not None:
-        trans_x, label, thr = 100.0 * trans / median_depth, "translation error (% of median depth)", 3.0
+        trans_x, label, thr = 100.0 * trans / median_depth, "translation error (% of median depth)", \
+            RELATIVE_THRESHOLDS_PCT
     else:
         raise UsvcError("plots: translation errors need a metric scale or a median scene depth")
     write_rows_csv(out_dir / PER_QUERY, rows, columns)
