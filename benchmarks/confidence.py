@@ -39,7 +39,6 @@ from usvc.core.exif import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.core.scene_io import read_scene_h5  # noqa: E402
-from usvc.prepare.importers import list_images  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402

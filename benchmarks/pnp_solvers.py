@@ -24,7 +24,8 @@ from _report import write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
-from usvc.relocalize.pnp import BACKENDS, solve_pnp  # noqa: E402
+from usvc.relocalize.options import BACKENDS  # noqa: E402
+from usvc.relocalize.pnp import solve_pnp  # noqa: E402
 
 
 def ace_median(values: np.ndarray) -> float:

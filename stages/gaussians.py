@@ -16,13 +16,13 @@ from usvc.gaussians.stage_fit import (
     ply_reload_difference,
 )
 from usvc.pipeline.config import group_options, register_configs
+from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
     skip_unless_rendered_views,
     stage_main,
     stage_outputs,
-    write_json,
 )
 from usvc.sfm.tracks import read_tracks
 from usvc.splat.ply_io import write_splat_ply

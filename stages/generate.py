@@ -10,13 +10,13 @@ from omegaconf import DictConfig
 from usvc.core.errors import UsvcError
 from usvc.generate.writer import generate_scene
 from usvc.pipeline.config import group_options, register_configs
+from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import (
     is_multirun,
     job_dir,
     peak_memory_mb,
     scene_paths,
     stage_main,
-    write_json,
 )
 
 log = logging.getLogger("usvc")

@@ -8,19 +8,11 @@ from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
 from usvc.core.ply import write_points_ply
-from usvc.keypoints.scoring import (
-    keypoint_stats,
-    select_keypoints,
-    write_keypoints,
-)
+from usvc.keypoints.keypoints_file import write_keypoints
+from usvc.keypoints.scoring import keypoint_stats, select_keypoints
 from usvc.pipeline.config import group_options, register_configs
-from usvc.pipeline.stage import (
-    peak_memory_mb,
-    scene_paths,
-    stage_main,
-    stage_outputs,
-    write_json,
-)
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
 from usvc.sfm.tracks import read_tracks
 
 log = logging.getLogger("usvc")

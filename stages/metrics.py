@@ -15,18 +15,12 @@ from usvc.metrics.evaluate import (
     evaluate_initial_poses,
     evaluate_poses,
     headline_figures,
-    read_query_stats,
-    read_refinement_records,
 )
 from usvc.metrics.plots import write_plots
 from usvc.pipeline.config import register_configs
-from usvc.pipeline.stage import (
-    peak_memory_mb,
-    scene_paths,
-    stage_main,
-    stage_outputs,
-    write_json,
-)
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
+from usvc.relocalize.queries_file import read_query_stats, read_refinement_records
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import read_tracks
 

@@ -8,7 +8,8 @@ from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
 from usvc.pipeline.config import group_options, register_configs
-from usvc.pipeline.stage import peak_memory_mb, stage_main, stage_outputs, write_json
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, stage_main, stage_outputs
 from usvc.prepare.importers import load_scene
 from usvc.prepare.prepare import prepare_scene
 

@@ -10,13 +10,8 @@ from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
 from usvc.core.scene_io import read_scene_h5
 from usvc.pipeline.config import group_options, register_configs
-from usvc.pipeline.stage import (
-    peak_memory_mb,
-    scene_paths,
-    stage_main,
-    stage_outputs,
-    write_json,
-)
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
 from usvc.relocalize.relocalize_scene import relocalize_frames, write_results
 from usvc.relocalize.relocalizer import Relocalizer
 

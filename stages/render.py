@@ -6,17 +6,17 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from usvc.buffer.keypoint_obs import read_scene_keypoints
 from usvc.core.atomic import atomic_dir
 from usvc.core.scene_io import read_scene_h5
+from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.pipeline.config import group_options, register_configs
+from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import (
     peak_memory_mb,
     scene_paths,
     skip_unless_rendered_views,
     stage_main,
     stage_outputs,
-    write_json,
 )
 from usvc.render.novel_views import render_novel_views
 from usvc.render.render_io import write_rendered_views

@@ -12,13 +12,8 @@ from usvc.core.atomic import atomic_dir
 from usvc.core.ply import write_points_ply
 from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
 from usvc.pipeline.config import group_options, register_configs
-from usvc.pipeline.stage import (
-    peak_memory_mb,
-    scene_paths,
-    stage_main,
-    stage_outputs,
-    write_json,
-)
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
 from usvc.sfm.sfm import reconstruct
 from usvc.sfm.tracks import from_reconstruction, sfm_stats, write_tracks
 

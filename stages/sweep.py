@@ -26,8 +26,9 @@ from omegaconf import DictConfig
 
 from usvc.core.errors import UsvcError
 from usvc.pipeline.config import register_configs
+from usvc.pipeline.metrics_file import read_metrics, write_json
 from usvc.pipeline.plan import StagePlan, first_affected_stage, load_plan, split_plan
-from usvc.pipeline.stage import job_dir, read_metrics, stage_main, write_json
+from usvc.pipeline.stage import job_dir, stage_main
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -10,13 +10,8 @@ from usvc.buffer.build import check_buffer_encoder, read_buffer, read_buffer_att
 from usvc.core.atomic import atomic_dir
 from usvc.model.head import Regressor, save_map
 from usvc.pipeline.config import group_options, register_configs
-from usvc.pipeline.stage import (
-    peak_memory_mb,
-    scene_paths,
-    stage_main,
-    stage_outputs,
-    write_json,
-)
+from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import read_tracks
 from usvc.train.train_head import train_head

@@ -111,8 +111,8 @@ def test_distorted_camera_is_rejected(encoder, tmp_path):
 def _keypoints_on_surface(prepared, frames, n=60, seed=0):
     """Surface points back-projected from frame 0's depth: frame 0 observes them in its 'track';
     the other frames can only see them through depth visibility. Plus points hidden behind walls."""
-    from usvc.buffer.keypoint_obs import SceneKeypoints
     from usvc.core.scene_io import read_depth
+    from usvc.keypoints.keypoints_file import SceneKeypoints
 
     rng = np.random.default_rng(seed)
     f0 = frames[0]

@@ -29,15 +29,17 @@ from usvc.metrics.evaluate import (
     HEADLINE_KEYS_METRIC,
     HEADLINE_KEYS_RELATIVE,
     PER_QUERY_COLUMNS,
-    QueryStats,
     evaluate_initial_poses,
     evaluate_poses,
     headline_figures,
-    read_query_stats,
-    read_refinement_records,
 )
 from usvc.metrics.plots import error_cdf, principal_axes, write_plots
 from usvc.pipeline.metrics_file import TIMING_KEYS
+from usvc.relocalize.queries_file import (
+    QueryStats,
+    read_query_stats,
+    read_refinement_records,
+)
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import Tracks, write_tracks
 

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from usvc.core.errors import UsvcError
 from usvc.core.pose_errors import rotation_error_deg, translation_error
 from usvc.core.scene import Camera
-from usvc.relocalize.pnp import BACKENDS, solve_pnp
+from usvc.relocalize.options import BACKENDS
+from usvc.relocalize.pnp import solve_pnp
 
 PINHOLE = Camera("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
 R_TRUE = Rotation.from_euler("xyz", [12.0, -30.0, 75.0], degrees=True).as_matrix()

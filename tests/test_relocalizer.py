@@ -23,7 +23,7 @@ from usvc.core.undistort import undistorted_camera
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, save_map
-from usvc.relocalize.pnp import BACKENDS
+from usvc.relocalize.options import BACKENDS
 from usvc.relocalize.relocalizer import PoseEstimate, RelocalizeOptions, Relocalizer
 
 SHORT_SIDE = 120  # the map's working resolution: 160x120 images, 20x15 cells

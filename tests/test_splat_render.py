@@ -218,8 +218,8 @@ def test_visibility_uses_rendered_depth_and_alpha():
 
 
 def _frames_and_keypoints(tmp_path):
-    from usvc.buffer.keypoint_obs import SceneKeypoints
     from usvc.core.scene import Camera, Frame
+    from usvc.keypoints.keypoints_file import SceneKeypoints
 
     g = _scene(200, seed=7, degree=0)
     g.opacity_logits = torch.full((200,), 4.0)

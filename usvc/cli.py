@@ -96,7 +96,7 @@ def _split_camera(tokens: list[str]) -> tuple[str, tuple[float, ...], list[str]]
 
 def _expand_photos(args: list[str]) -> list[tuple[str, Path]]:
     """(name, path) per photo: files as given, folders as their images sorted by name."""
-    from usvc.prepare.importers import IMAGE_SUFFIXES
+    from usvc.prepare.importers.common import IMAGE_SUFFIXES
 
     photos: list[tuple[str, Path]] = []
     for arg in args:

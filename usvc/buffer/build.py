@@ -19,12 +19,13 @@ import torch
 from tqdm import tqdm
 
 from usvc.buffer.augment import augment
-from usvc.buffer.keypoint_obs import SceneKeypoints, sample_features, view_observations
+from usvc.buffer.keypoint_obs import sample_features, view_observations
 from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
 from usvc.core.h5io import Field, read_h5, write_h5
 from usvc.core.options import check
 from usvc.core.scene import Frame
+from usvc.keypoints.keypoints_file import SceneKeypoints
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.preprocess import luma01, normalise
 

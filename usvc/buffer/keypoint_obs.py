@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from usvc.buffer.augment import AugmentedView
-from usvc.keypoints.keypoints_file import SceneKeypoints, read_scene_keypoints  # noqa: F401  (stages import it here)
+from usvc.keypoints.keypoints_file import SceneKeypoints
 from usvc.model.encoder import OUTPUT_STRIDE
 
 

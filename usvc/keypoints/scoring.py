@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from usvc.core.errors import KeypointError
-from usvc.keypoints.keypoints_file import Keypoints, write_keypoints  # noqa: F401  (stage imports it here)
+from usvc.keypoints.keypoints_file import Keypoints
 from usvc.keypoints.options import KeypointOptions
 from usvc.sfm.tracks import Tracks
 

@@ -17,12 +17,9 @@ from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error
 from usvc.core.scene import Scene
-from usvc.relocalize.queries_file import (  # noqa: F401  (queries.h5's readers, re-exported)
-    REFINEMENT_DATASETS,
+from usvc.relocalize.queries_file import (
     QueryStats,
     RefinementRecords,
-    read_query_stats,
-    read_refinement_records,
 )
 
 PER_QUERY_COLUMNS: tuple[str, ...] = (

@@ -19,7 +19,7 @@ from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
 from usvc.pipeline.config import validate
 from usvc.pipeline.logs import quiet_third_party
-from usvc.pipeline.metrics_file import read_metrics, write_json  # noqa: F401  (stages import them from here)
+from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.paths import ScenePaths
 
 log = logging.getLogger("usvc")

@@ -23,7 +23,7 @@ import pycolmap
 
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
-from usvc.relocalize.options import BACKENDS  # noqa: F401  (callers import it from here)
+from usvc.relocalize.options import BACKENDS
 
 log = logging.getLogger(__name__)
 

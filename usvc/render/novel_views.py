@@ -19,11 +19,11 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from usvc.buffer.keypoint_obs import SceneKeypoints
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.pose_errors import rotation_error_deg
 from usvc.core.scene import Frame
+from usvc.keypoints.keypoints_file import SceneKeypoints
 from usvc.render.options import RenderOptions
 from usvc.splat.gaussians import Gaussians
 from usvc.splat.rasterize import View, render

@@ -13,7 +13,6 @@ from pathlib import Path
 
 from usvc.core.errors import SceneError
 from usvc.core.scene import Scene
-from usvc.prepare.importers.common import IMAGE_SUFFIXES, list_images  # noqa: F401  (the CLI and benchmarks import them from here)
 from usvc.prepare.options import FORMATS, SPLIT_RULES
 
 _MODULES = {
