@@ -40,6 +40,10 @@ import yaml
 from _report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from usvc.pipeline.metrics_file import read_metrics  # noqa: E402
+
 MAPPING = ("prepare", "sfm", "keypoints", "buffer", "train")
 QUERYING = ("relocalize", "metrics")
 
@@ -182,9 +186,9 @@ def main() -> None:
         "threads_env": env.get("OMP_NUM_THREADS", "unset"),
         "cpu": platform.processor() or platform.machine(),
     }
-    reloc = ROOT / "results" / name / "relocalize.timing.json"
+    reloc = ROOT / "results" / name / "relocalize.json"
     if "relocalize" in args.stages and reloc.exists():
-        stats = json.loads(reloc.read_text())  # the stage's own per-query timing, model loading excluded
+        stats = read_metrics(reloc)  # figures and the stage's own per-query timing (model loading excluded)
         result["ms_per_query"] = round(stats["ms_per_query"], 1)
         result["queries"] = stats["queries"]
     out = args.out or ROOT / "results" / name / "pipeline_time.json"
