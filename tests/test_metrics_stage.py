@@ -1,4 +1,4 @@
-"""The metrics stage: median scene depth, per-query evaluation, plots, and the stage end to end.
+"""The metrics stage: per-query evaluation, plots, and the stage end to end.
 
 Every input is synthetic and built in tmp_path, so these tests do not need the pipeline to
 have run (the relocalize stage in particular).
@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, tracks_of
 from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
@@ -40,8 +40,7 @@ from usvc.relocalize.queries_file import (
     read_query_stats,
     read_refinement_records,
 )
-from usvc.sfm.median_depth import median_scene_depth
-from usvc.sfm.tracks import Tracks, write_tracks
+from usvc.sfm.tracks import write_tracks
 
 CAM = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 N_QUERIES = 8
@@ -86,47 +85,6 @@ def _rotated(R: np.ndarray, t: np.ndarray, deg: float) -> tuple[np.ndarray, np.n
 def _moved(R: np.ndarray, t: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Same rotation, centre moved by `offset`."""
     return R, -R @ (camera_centers(R, t) + offset)
-
-
-def _tracks(R: np.ndarray, t: np.ndarray, xyz: np.ndarray, offset: list[int], obs_image: list[int]) -> Tracks:
-    n, m = len(xyz), len(obs_image)
-    return Tracks(
-        image_names=[f"m{i:02d}.png" for i in range(len(R))], R=np.asarray(R, float), t=np.asarray(t, float),
-        K=np.repeat(CAM.K[None], len(R), axis=0), point_id=np.arange(n), xyz=np.asarray(xyz, float),
-        rgb=np.zeros((n, 3), np.uint8), error=np.zeros(n, np.float32), offset=np.asarray(offset, np.int64),
-        obs_image=np.asarray(obs_image, np.int32), obs_uv=np.zeros((m, 2), np.float32),
-        obs_descriptor=np.zeros((m, 128), np.uint8), obs_error=np.zeros(m, np.float32),
-    )
-
-
-# --- median scene depth ---------------------------------------------------------------------
-
-def test_median_depth_of_known_observations():
-    # camera 0 at the origin, camera 1 one unit further back (t_z = 1): depths z and z + 1
-    R = np.stack([np.eye(3), np.eye(3)])
-    t = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    xyz = [[0.0, 0.0, 1.0], [0.5, 0.0, 2.0], [0.0, 0.3, 4.0]]
-    tr = _tracks(R, t, xyz, offset=[0, 2, 3, 5], obs_image=[0, 1, 0, 0, 1])
-    # depths: 1, 2, 2, 4, 5 -> median 2
-    assert median_scene_depth(tr) == pytest.approx(2.0)
-
-
-def test_median_depth_ignores_points_behind_the_camera():
-    R = np.stack([np.eye(3)])
-    tr = _tracks(R, np.zeros((1, 3)), [[0, 0, -5.0], [0, 0, -4.0], [0, 0, 3.0]], [0, 1, 2, 3], [0, 0, 0])
-    assert median_scene_depth(tr) == pytest.approx(3.0)
-
-
-def test_median_depth_uses_rotation():
-    R = Rotation.from_euler("y", 90, degrees=True).as_matrix()[None]  # camera z = -world x
-    tr = _tracks(R, np.zeros((1, 3)), [[-3.0, 0, 0]], [0, 1], [0])
-    assert median_scene_depth(tr) == pytest.approx(3.0)
-
-
-def test_median_depth_without_positive_depth_fails():
-    tr = _tracks(np.eye(3)[None], np.zeros((1, 3)), [[0, 0, -1.0]], [0, 1], [0])
-    with pytest.raises(UsvcError, match="positive depth"):
-        median_scene_depth(tr)
 
 
 # --- evaluate_poses -------------------------------------------------------------------------
@@ -366,8 +324,9 @@ def inputs(tmp_path) -> Path:
     rng = np.random.default_rng(2)
     xyz = rng.uniform(-0.5, 0.5, (20, 3))
     obs_image = np.concatenate([rng.choice(len(train), 3, replace=False) for _ in range(20)])
-    write_tracks(data / "sfm" / "tracks.h5", _tracks(
-        np.stack([f.R for f in train]), np.stack([f.t for f in train]), xyz, list(range(0, 61, 3)), obs_image))
+    write_tracks(data / "sfm" / "tracks.h5", tracks_of(
+        np.stack([f.R for f in train]), np.stack([f.t for f in train]), xyz, list(range(0, 61, 3)), obs_image,
+        K=CAM.K))
     est = _exact(scene)
     est["q01.png"] = _moved(*est["q01.png"], np.array([0.03, 0.0, 0.0]))
     del est["q05.png"]

@@ -105,8 +105,13 @@ def test_trajectory_tells_ground_truth_from_estimate():
     assert gt.get_paths()[0].vertices.shape != est.get_paths()[0].vertices.shape or \
         not np.allclose(gt.get_paths()[0].vertices, est.get_paths()[0].vertices)
     # a line from each ground-truth position to its estimate
-    error_lines = [line for line in ax.get_lines() if len(line.get_xdata()) == 2]
-    assert len(error_lines) == 12
+    assert len(_error_segments(ax)) == 12
+
+
+def _error_segments(ax) -> list:
+    """The ground-truth-to-estimate segments of the trajectory plot (one collection, one segment each)."""
+    (lines,) = [c for c in ax.collections if c.get_label() == "error (ground truth to estimate)"]
+    return [seg for seg in lines.get_segments() if len(seg) == 2]
 
 
 def test_trajectory_marks_failures_and_missing_estimates():
@@ -115,4 +120,4 @@ def test_trajectory_marks_failures_and_missing_estimates():
     labels = _legend(ax)
     assert {"ground truth", "estimate", "estimate (failed)"} <= set(labels)
     assert any("2 queries without an estimate" in label for label in labels)
-    assert len([line for line in ax.get_lines() if len(line.get_xdata()) == 2]) == 10
+    assert len(_error_segments(ax)) == 10

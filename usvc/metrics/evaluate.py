@@ -8,7 +8,7 @@ plots and failure analysis need no second pass over the inputs.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -20,6 +20,7 @@ from usvc.core.scene import Scene
 from usvc.relocalize.queries_file import (
     QueryStats,
     RefinementRecords,
+    refinement_summary,
 )
 
 PER_QUERY_COLUMNS: tuple[str, ...] = (
@@ -85,12 +86,6 @@ def evaluate_poses(
         for i, f in enumerate(queries)
     ]
     return summary, rows
-
-
-def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[int] | np.ndarray) -> dict[str, float]:
-    """refine_kept_fraction and refine_mean_iterations over the given (successful) queries; 0 if none."""
-    return {"refine_kept_fraction": float(np.mean(kept)) if len(kept) else 0.0,
-            "refine_mean_iterations": float(np.mean(iterations)) if len(iterations) else 0.0}
 
 
 # The few figures `dvc metrics show` / `dvc exp show` print by default: accuracy at the three

@@ -17,6 +17,7 @@ import matplotlib
 
 matplotlib.use("Agg")  # headless: stages run on servers and in CI
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
 import numpy as np  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
@@ -92,10 +93,10 @@ def trajectory_figure(gt: np.ndarray, est: np.ndarray, failed: np.ndarray, title
     e = (est - mean) @ axes.T  # NaN rows (no estimate) stay NaN and are not drawn
     has_est = np.all(np.isfinite(e), axis=1)
     fig, ax = plt.subplots(figsize=(5.5, 5.0), dpi=_DPI)
-    segments = [[gi, ei] for gi, ei in zip(g[has_est], e[has_est])]
-    for k, (gi, ei) in enumerate(segments):
-        ax.plot([gi[0], ei[0]], [gi[1], ei[1]], zorder=1, label="error (ground truth to estimate)" if k == 0 else None,
-                **_ERROR_LINE)
+    if has_est.any():
+        ax.add_collection(LineCollection(np.stack([g[has_est], e[has_est]], axis=1), zorder=1,
+                                         label="error (ground truth to estimate)", colors=_ERROR_LINE["color"],
+                                         linewidths=_ERROR_LINE["lw"]))
     ax.scatter(g[:, 0], g[:, 1], label="ground truth", zorder=2, **_GT_STYLE)
     ok, bad = has_est & ~failed, has_est & failed
     ax.scatter(e[ok, 0], e[ok, 1], label="estimate", zorder=3, **_EST_STYLE)

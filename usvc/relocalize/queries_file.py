@@ -1,7 +1,7 @@
 """queries.h5, the relocalize stage's per-query records: its one writer and its readers.
 
 Written by `usvc.relocalize.relocalize_scene.write_results` beside poses.txt; read by the metrics
-stage (through `usvc.metrics.evaluate`, which re-exports the readers). Every dataset carries
+stage. Every dataset carries
 units/description/frame attributes (QUERIES_SCHEMA; docs/artifacts.md). Timings are not part of
 the file (two runs that give the same poses give the same bytes): files written before that
 change may hold `seconds` (and per-step `*_seconds`), which `read_query_stats` still reads.
@@ -124,3 +124,9 @@ def read_refinement_records(path: Path | str) -> RefinementRecords | None:
         if got != want:
             raise UsvcError(f"{path}: dataset {key} has shape {got}, expected {want} for {q} queries")
     return rec
+
+
+def refinement_summary(kept: Sequence[bool] | np.ndarray, iterations: Sequence[int] | np.ndarray) -> dict[str, float]:
+    """refine_kept_fraction and refine_mean_iterations over the given (successful) queries; 0 if none."""
+    return {"refine_kept_fraction": float(np.mean(kept)) if len(kept) else 0.0,
+            "refine_mean_iterations": float(np.mean(iterations)) if len(iterations) else 0.0}

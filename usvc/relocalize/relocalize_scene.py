@@ -13,8 +13,7 @@ from tqdm import tqdm
 from usvc.core.errors import UsvcError
 from usvc.core.pose_errors import write_poses_txt
 from usvc.core.scene import Frame
-from usvc.metrics.evaluate import refinement_summary
-from usvc.relocalize.queries_file import write_queries
+from usvc.relocalize.queries_file import refinement_summary, write_queries
 from usvc.relocalize.relocalizer import PoseEstimate, Relocalizer
 
 log = logging.getLogger(__name__)
