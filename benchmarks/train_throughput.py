@@ -9,6 +9,11 @@ writes `results/benchmarks/train_throughput.json`: the achieved rate as a fracti
 and the fewest seconds the configured training could take if it ran at the peak.
 
     python benchmarks/train_throughput.py --scene mini --iterations 300
+    python benchmarks/train_throughput.py --scene mini --iterations 30 train.precision=bf16
+
+`train.precision` decides the training's precision (the machine's `auto` unless overridden); the
+peak is that precision's product rate; both product rates are reported. The report goes to
+`train_throughput.json`, or `train_throughput_bf16.json` for a bf16 run.
 
 Run it on an otherwise idle machine, after the pipeline has built the scene's buffer.
 """
@@ -27,9 +32,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import usvc  # noqa: E402,F401  (first: it sets OpenMP's wait policy before torch loads)
 import torch  # noqa: E402
 
+from _report import write_report  # noqa: E402
+
 from usvc.buffer.build import read_buffer  # noqa: E402
+from usvc.core.precision import cpu_has_native_bf16, resolve_precision  # noqa: E402
 from usvc.model.head import Head  # noqa: E402
 from usvc.pipeline import threads as thread_policy  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
@@ -39,9 +48,9 @@ from usvc.sfm.tracks import read_tracks  # noqa: E402
 from usvc.train.train_head import TrainOptions, train_head  # noqa: E402
 
 
-def matmul_gflops(rows: int, width: int, repeats: int = 300) -> float:
-    """Sustained fp32 GFLOP/s of a (rows x width) @ (width x width) product on this CPU."""
-    a, b = torch.randn(rows, width), torch.randn(width, width)
+def matmul_gflops(rows: int, width: int, repeats: int = 300, dtype: torch.dtype = torch.float32) -> float:
+    """Sustained GFLOP/s of a (rows x width) @ (width x width) product in `dtype` on this CPU."""
+    a, b = torch.randn(rows, width).to(dtype), torch.randn(width, width).to(dtype)
     for _ in range(20):
         a @ b
     start = time.perf_counter()
@@ -78,7 +87,10 @@ def main() -> None:
                                        if configured.bundle_weight > 0 else 0)
     macs = head_macs_per_sample(buf.features.shape[1], head_width, head_blocks)
     gflop_per_iteration = 3 * 2 * samples * macs / 1e9  # forward, and backward's two products per layer
-    peak = matmul_gflops(samples, head_width)
+    precision = resolve_precision(configured.precision)
+    peak32 = matmul_gflops(samples, head_width)
+    peak16 = matmul_gflops(samples, head_width, repeats=30, dtype=torch.bfloat16)
+    peak = peak16 if precision == "bf16" else peak32
 
     start = time.perf_counter()
     train_head(buf, median_depth, timed, head_width=head_width, head_blocks=head_blocks, seed=cfg.seed)
@@ -91,14 +103,14 @@ def main() -> None:
         "samples_per_iteration": samples, "head_macs_per_sample": macs,
         "gflop_per_iteration": round(gflop_per_iteration, 2), "timed_iterations": args.iterations,
         "iterations_per_second": round(per_second, 2), "achieved_gflops": round(achieved, 1),
+        "precision": precision, "native_bf16": cpu_has_native_bf16(),
+        "matmul_fp32_gflops": round(peak32, 1), "matmul_bf16_gflops": round(peak16, 1),
         "matmul_peak_gflops": round(peak, 1), "fraction_of_peak": round(achieved / peak, 3),
         "configured_iterations": configured.iterations,
         "configured_train_seconds_at_this_rate": round(configured.iterations / per_second, 1),
         "configured_train_seconds_at_peak": round(configured.iterations * gflop_per_iteration / peak, 1),
     }
-    out = ROOT / "results" / "benchmarks" / "train_throughput.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
+    write_report("train_throughput" + ("_bf16" if precision == "bf16" else ""), result)
     print(json.dumps(result, indent=1))
 
 

@@ -7,7 +7,9 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.buffer.build import (
+    HELDOUT_FILE,
     fill_buffer,
+    fill_heldout,
     holdout_split,
     working_short_side,
     write_buffer,
@@ -48,14 +50,18 @@ def main(cfg: DictConfig) -> None:
                                     cfg.model.max_short_side)
     buf = fill_buffer(frames, encoder, group_options(cfg, "buffer"), short_side, seed=cfg.seed, keypoints=keypoints,
                       depths=depths if any(d is not None for d in depths) else None)
+    # Held-out mapping images, unaugmented: training measures its held-out fit on them (train.validate_every).
+    heldout = fill_heldout(holdout, encoder, group_options(cfg, "buffer"), short_side, seed=cfg.seed) if holdout else None
     out, metrics_path = stage_outputs(cfg, "buffer")
+    attrs = {"short_side": short_side, "encoder_file": weights.name, "encoder_fingerprint": encoder_fingerprint(encoder)}
     with atomic_dir(out) as tmp:
-        write_buffer(tmp / "buffer.h5", buf, short_side=short_side, encoder_file=weights.name,
-                     encoder_fingerprint=encoder_fingerprint(encoder))
+        write_buffer(tmp / "buffer.h5", buf, **attrs)
+        if heldout is not None:
+            write_buffer(tmp / HELDOUT_FILE, heldout, **attrs)
         megabytes = (tmp / "buffer.h5").stat().st_size / 2**20
     stats = {"cells": len(buf.features), "views": len(buf.view_image), "mapping_images": len(frames) - n_rendered,
              "rendered_images": n_rendered,
-             "holdout_images": len(holdout),
+             "holdout_images": len(holdout), "holdout_cells": 0 if heldout is None else len(heldout.features),
              "rendered_buffer_views": int((buf.view_image >= len(frames) - n_rendered).sum()),
              "short_side": short_side, "feature_dim": int(buf.features.shape[1]), "megabytes": megabytes,
              "encoder": weights.name, "keypoint_observations": len(buf.kp_id),

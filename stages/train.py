@@ -6,7 +6,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.buffer.build import check_buffer_encoder, read_buffer, read_buffer_attrs
+from usvc.buffer.build import HELDOUT_FILE, check_buffer_encoder, read_buffer, read_buffer_attrs
 from usvc.core.atomic import atomic_dir
 from usvc.model.head import Regressor, save_map
 from usvc.pipeline.config import group_options, register_configs
@@ -34,12 +34,14 @@ def main(cfg: DictConfig) -> None:
     attrs = read_buffer_attrs(buffer_file)
     check_buffer_encoder(buffer_file, attrs, encoder, weights)
     buf = read_buffer(buffer_file)
+    heldout_file = paths.buffer / HELDOUT_FILE
+    heldout = read_buffer(heldout_file) if heldout_file.is_file() else None
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
     head, summary = train_head(buf, median_depth, group_options(cfg, "train"), head_width=cfg.model.head_width,
-                               head_blocks=cfg.model.head_blocks, seed=cfg.seed)
+                               head_blocks=cfg.model.head_blocks, seed=cfg.seed, heldout=heldout)
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
-                "train": OmegaConf.to_container(cfg.train), "seed": cfg.seed,
+                "train": OmegaConf.to_container(cfg.train), "precision": summary["precision"], "seed": cfg.seed,
                 "final_loss": summary["final_loss"]}  # no timings: same training, same bytes
     out, metrics_path = stage_outputs(cfg, "train", artifact="map")
     with atomic_dir(out) as tmp:

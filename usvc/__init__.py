@@ -1,12 +1,18 @@
 """usvc: camera relocalization by scene coordinate regression with multi-view training constraints.
 
 `from usvc import Relocalizer` is resolved lazily, so importing a light submodule (errors,
-config) does not pull in torch.
+config) does not pull in torch. Importing it sets OpenMP's wait policy (usvc.pipeline.threads)
+unless the user set one, so import usvc before torch to have it.
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+from usvc.pipeline.threads import set_wait_policy
+
+# Before torch or numpy load: OpenMP threads sleep at barriers instead of spinning (see threads.py).
+set_wait_policy()
 
 __all__ = ["PoseEstimate", "RelocalizeOptions", "Relocalizer"]
 

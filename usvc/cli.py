@@ -193,7 +193,8 @@ def _localize(args: argparse.Namespace) -> int:
     threads.apply(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
-    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine)
+    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine,
+                                precision=args.precision)
     if args.min_confidence is not None:
         if not 0.0 <= args.min_confidence <= 1.0:
             raise UsvcError(f"--min-confidence {args.min_confidence:g}: must be in [0, 1]")
@@ -293,6 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--no-refine", action="store_true",
                      help="skip keypoint-guided refinement (method=single); on by default when the map has keypoints")
     loc.add_argument("--device", default="cpu")
+    loc.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
+                     help="the network's products: auto = bf16 where the device runs it natively and faster, "
+                          "else fp32 (any map runs at either)")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")
     loc.add_argument("--out-dir", help="also write the results here (files replaced atomically at the end)")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -24,6 +24,7 @@ from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
 from usvc.core.h5io import Field, read_h5, write_h5
 from usvc.core.options import check
+from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Frame
 from usvc.keypoints.keypoints_file import SceneKeypoints
 from usvc.model.encoder import Encoder, cell_centers
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 
 
 BUFFER_FORMAT, BUFFER_VERSION = "usvc-buffer", 1
+HELDOUT_FILE = "holdout.h5"  # beside buffer.h5 when buffer.holdout_every > 0: cells of the withheld images
 _PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
 # Every dataset of buffer.h5 with its attributes; docs/artifacts.md lists the same. File attributes:
 # what the stage passes to write_buffer (short_side, encoder_file, encoder_fingerprint), format, version.
@@ -153,6 +155,7 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
     if depths is not None and len(depths) != len(frames):
         raise UsvcError(f"got {len(depths)} depth maps for {len(frames)} mapping images")
     check(opts, "buffer")
+    precision = resolve_precision(opts.precision, device)
     rng = np.random.default_rng(seed)
     kp_rng = np.random.default_rng([seed, 1])
     kp_parts: dict[str, list] = {"id": [], "features": [], "pixels": [], "view": [], "from_depth": []}
@@ -169,7 +172,8 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
                                scale_range=(opts.scale_min, opts.scale_max), short_side=short_side,
                                max_rotation_deg=opts.max_rotation_deg, brightness=(opts.brightness_min, opts.brightness_max),
                                contrast=(opts.contrast_min, opts.contrast_max))
-                out = encoder(normalise(view.image).to(device))[0]  # (C, h, w)
+                with autocast(precision, device):
+                    out = encoder(normalise(view.image).to(device))[0].float()  # (C, h, w)
                 c, h, w = out.shape
                 valid = _valid_cells(view.mask, h, w)
                 if len(valid) == 0:
@@ -201,7 +205,8 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
                 bar.update(take)
                 if count >= opts.size:
                     break
-    log.info("buffer: %d cells from %d augmented views (planned about %d)", count, len(views["image"]), n_views)
+    log.info("buffer: %d cells from %d augmented views (planned about %d), encoder at %s", count,
+             len(views["image"]), n_views, precision)
     buf = TrainingBuffer(
         features=np.concatenate(feats), pixels=np.concatenate(pixels), view_index=np.concatenate(view_idx),
         view_image=np.asarray(views["image"], dtype=np.int32), view_R=np.stack(views["R"]).astype(np.float32),
@@ -221,6 +226,15 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
         log.info("buffer: %d keypoint observations of %d keypoints (%.1f %% from depth visibility)", len(ids),
                  len(np.unique(ids)), 100 * buf.kp_from_depth.mean())
     return buf
+
+
+def fill_heldout(frames: list[Frame], encoder: Encoder, opts: BufferOptions, short_side: int, seed: int = 0,
+                 device: str = "cpu") -> TrainingBuffer:
+    """Cells of the held-out mapping images (`holdout_split`), one view each at the working size with
+    no augmentation and no keypoints: what training measures its held-out fit on."""
+    plain = replace(opts, size=len(frames) * opts.samples_per_image, scale_min=1.0, scale_max=1.0,
+                    max_rotation_deg=0.0, brightness_min=1.0, brightness_max=1.0, contrast_min=1.0, contrast_max=1.0)
+    return fill_buffer(frames, encoder, plain, short_side, seed=seed, device=device)
 
 
 def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) -> None:

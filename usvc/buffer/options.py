@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from usvc.core.options import non_negative, ordered, positive
+from usvc.core.options import non_negative, one_of, ordered, positive
+from usvc.core.precision import PRECISIONS
 
 
 @dataclass
@@ -24,10 +25,12 @@ class BufferOptions:
     depth_visibility_tol: float = 0.05  # depth maps only: a keypoint off its track counts as seen where |depth - z| < tol * z
     rendered_views: bool = False  # add the render stage's Gaussian-splatting views (set by method=multiview_gs)
     holdout_every: int = 0  # withhold every k-th mapping image from training (a validation split); 0 = none
+    precision: str = "auto"  # the encoder's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
         out = positive(self, "size", "samples_per_image", "scale_min", "scale_max", "brightness_min",
                        "contrast_min", "depth_visibility_tol")
+        out += one_of(self, "precision", PRECISIONS)
         out += non_negative(self, "short_side", "keypoint_obs_per_view", "holdout_every", "max_rotation_deg")
         for low, high in (("scale_min", "scale_max"), ("brightness_min", "brightness_max"),
                           ("contrast_min", "contrast_max")):

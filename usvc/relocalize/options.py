@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from usvc.core.options import in_range, one_of, positive
+from usvc.core.precision import PRECISIONS
 
 BACKENDS = ("pycolmap", "opencv")
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
@@ -23,9 +24,10 @@ class RelocalizeOptions:
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
+    precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
-        out = one_of(self, "backend", BACKENDS)
+        out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
         out += positive(self, "max_error_px", "min_inliers", "refine_radius_px", "refine_max_iterations",
                         "refine_delta", "refine_min_correspondences")
         out += in_range(self, "min_confidence", 0.0, 1.0)

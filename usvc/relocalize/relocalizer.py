@@ -21,6 +21,7 @@ from usvc.core.errors import UsvcError
 from usvc.core.exif import read_image_bgr
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.core.options import check
+from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
 from usvc.model.encoder import cell_centers
@@ -186,6 +187,9 @@ class Relocalizer:
         self.regressor, self.metadata = load_map(map_path, encoder)
         self.regressor.to(device).eval()
         self.device = device
+        # The map's weights are stored at fp16 whatever precision it was trained at, so any map runs
+        # at either precision on any machine.
+        self.precision = resolve_precision(self.options.precision, device)
         self.short_side = int(self.metadata.get("short_side", 0)) or None
         self.map_path = Path(map_path)
         self.keypoints_xyz = map_keypoints(header)
@@ -206,7 +210,8 @@ class Relocalizer:
     @torch.inference_mode()
     def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
         """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
-        out = self.regressor(normalise(gray01).to(self.device))[0]
+        with autocast(self.precision, self.device):
+            out = self.regressor(normalise(gray01).to(self.device))[0].float()
         return out.permute(1, 2, 0).double().cpu().numpy()
 
     def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float) -> str:

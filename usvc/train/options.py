@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from usvc.core.options import in_range, one_of, positive
+from usvc.core.options import in_range, non_negative, one_of, positive
+from usvc.core.precision import PRECISIONS
 
 OPTIMIZERS = ("adamw", "adabelief")
 SCHEDULES = ("one_cycle", "constant")
@@ -32,10 +33,13 @@ class TrainOptions:
     bundle_loss: str = "tanh"  # tanh (ACE's soft clamp, sharing the threshold schedule) | squared (eq. 7 as printed)
     bundle_groups_per_batch: int = 64  # whole keypoint groups mixed into every batch of pixel samples
     bundle_obs_per_group: int = 16  # observations drawn per group (all of them when fewer)
+    precision: str = "auto"  # the head's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
+    validate_every: int = 500  # held-out reprojection every this many steps, when the buffer has held-out views; 0 = never
 
     def problems(self) -> list[str]:
         out = one_of(self, "optimizer", OPTIMIZERS) + one_of(self, "schedule", SCHEDULES)
-        out += one_of(self, "bundle_loss", BUNDLE_FORMS)
+        out += one_of(self, "bundle_loss", BUNDLE_FORMS) + one_of(self, "precision", PRECISIONS)
+        out += non_negative(self, "validate_every")
         out += positive(self, "iterations", "batch_size", "lr", "reproj_weight", "bundle_groups_per_batch",
                         "bundle_obs_per_group")
         out += in_range(self, "warmup_fraction", 0.0, 1.0, high_open=True)

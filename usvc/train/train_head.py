@@ -19,12 +19,13 @@ from usvc.buffer.build import TrainingBuffer
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.options import check
+from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief
 from usvc.train.bundle_loss import bundle_loss
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
-from usvc.train.reprojection_loss import reprojection_loss
+from usvc.train.reprojection_loss import project_samples, reprojection_loss
 from usvc.train.schedule import circle_threshold
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,32 @@ def mapping_center(buf: TrainingBuffer) -> np.ndarray:
     centres = camera_centers(buf.view_R, buf.view_t)
     _, first = np.unique(buf.view_image, return_index=True)
     return centres[first].mean(axis=0)
+
+
+@torch.inference_mode()
+def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: float, device: str = "cpu",
+                chunk: int = 16384) -> dict[str, float]:
+    """How well the head fits cells it never trained on (a held-out buffer, `buffer.holdout_every`):
+    median L1 reprojection error (px) of the cells predicted in front of the camera, and the share
+    of all cells within 10 px."""
+    errors = []
+    Rv, tv = torch.from_numpy(buf.view_R).float(), torch.from_numpy(buf.view_t).float()
+    Kv = torch.from_numpy(buf.view_K).float()
+    for lo in range(0, len(buf.features), chunk):
+        x = torch.from_numpy(buf.features[lo:lo + chunk]).to(device=device, dtype=torch.float32)
+        with autocast(precision, device):
+            xyz = head.forward_flat(x)
+        v = torch.from_numpy(buf.view_index[lo:lo + chunk].astype(np.int64))
+        uv = torch.from_numpy(buf.pixels[lo:lo + chunk]).float().to(device)
+        K = Kv[v].to(device)
+        z, proj, _ = project_samples(xyz.float(), uv, Rv[v].to(device), tv[v].to(device), K, torch.linalg.inv(K),
+                                     depth_min, 1.0)
+        err = (proj - uv).abs().sum(dim=1)
+        errors.append(torch.where(z >= depth_min, err, torch.full_like(err, float("inf"))).cpu())
+    err = torch.cat(errors).numpy()
+    valid = np.isfinite(err)
+    return {"median_reprojection_px": float(np.median(err[valid])) if valid.any() else float("nan"),
+            "within_10px": float((err <= 10.0).mean())}
 
 
 def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
@@ -50,11 +77,16 @@ def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
 
 
 def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, head_width: int = 256,
-               head_blocks: int = 1, seed: int = 0, device: str = "cpu") -> tuple[Head, dict[str, Any]]:
+               head_blocks: int = 1, seed: int = 0, device: str = "cpu",
+               heldout: TrainingBuffer | None = None) -> tuple[Head, dict[str, Any]]:
     """Fit a fresh head (`head_width` channels, `head_blocks` residual blocks: the model's) to the
     buffer; returns it and training statistics. `seed` fixes the head's initialisation and the
-    batches."""
+    batches. The head's products run at `opts.precision` (resolved for `device`; the statistics
+    say which); the losses, master weights and optimizer state stay fp32. With `heldout` (cells of
+    mapping images the buffer withheld) and `opts.validate_every`, the statistics carry the held-out
+    fit over training; it reads the head only, so the trained head is the same with or without it."""
     check(opts, "train")
+    precision = resolve_precision(opts.precision, device)
     if not (np.isfinite(median_depth) and median_depth > 0):
         raise UsvcError(f"training needs a positive median scene depth, got {median_depth}")
     n = len(buf.features)
@@ -97,6 +129,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
     order = torch.randperm(n, generator=gen)
     cursor, epochs = 0, 0
     history: list[tuple[float, float, float]] = []
+    validation: list[dict[str, float]] = []
     start = time.perf_counter()
     bar = tqdm(range(opts.iterations), desc="train", unit="it")
     for it in bar:
@@ -110,7 +143,8 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
             rows, sizes = sampler.next()
             rows_t = torch.from_numpy(rows)
             x = torch.cat([x, kp_feats[rows_t].to(device=device, dtype=torch.float32)])
-        pred = head.forward_flat(x)
+        with autocast(precision, device):
+            pred = head.forward_flat(x)
         tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
         pix_loss, stats = reprojection_loss(
             pred[:len(idx)], pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
@@ -132,6 +166,12 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
         if not torch.isfinite(loss):
             raise UsvcError(f"training diverged at iteration {it} (loss {float(loss)}); lower train.lr")
         history.append((float(pix_loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
+        if heldout is not None and opts.validate_every and ((it + 1) % opts.validate_every == 0
+                                                            or it + 1 == opts.iterations):
+            fit = heldout_fit(head, heldout, precision, depth_min, device)
+            validation.append({"iteration": it + 1, **fit})
+            log.debug("iteration %d: held-out median reprojection %.2f px, %.1f %% within 10 px", it + 1,
+                      fit["median_reprojection_px"], 100 * fit["within_10px"])
         if it % 50 == 0:
             bar.set_postfix(loss=f"{history[-1][0]:.2f}", valid=f"{history[-1][1]:.2f}",
                             px=f"{history[-1][2]:.1f}", tau=f"{tau:.1f}")
@@ -140,6 +180,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
     tail = np.array(history[-max(1, len(history) // 20):])
     summary = {
         "iterations": opts.iterations,
+        "precision": precision,
         "samples_seen": opts.iterations * opts.batch_size,
         "epochs": round(opts.iterations * opts.batch_size / n, 2),
         "final_loss": float(tail[:, 0].mean()),
@@ -151,6 +192,9 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
         "loss_curve": [float(np.mean([h[0] for h in history[i:i + 100]])) for i in range(0, len(history), 100)],
         "bundle_weight": opts.bundle_weight,
     }
+    if validation:
+        summary["heldout_cells"] = len(heldout.features)
+        summary["heldout_curve"] = validation
     if sampler is not None:
         btail = np.array(bundle_history[-max(1, len(bundle_history) // 20):])
         summary.update({
@@ -161,8 +205,8 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
             "bundle_loss_curve": [float(np.mean([h[0] for h in bundle_history[i:i + 100]]))
                                   for i in range(0, len(bundle_history), 100)],
         })
-    log.info("trained head: %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
-             opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
+    log.info("trained head (%s): %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
+             precision, opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
              summary["final_reproj_median_px"])
     return head, summary
 
