@@ -10,6 +10,7 @@ from usvc.buffer.augment import warp_view
 from usvc.buffer.build import (
     BufferOptions,
     fill_buffer,
+    fill_heldout,
     holdout_split,
     read_buffer,
     read_buffer_image_names,
@@ -172,6 +173,32 @@ def test_keypoint_feature_is_the_cell_feature_at_a_cell_centre():
     torch.testing.assert_close(out[1], fmap[:, 0, 0])
     mid = sample_features(fmap, np.array([[8.5, 4.5]], dtype=np.float32))[0]  # halfway between (0,0) and (0,1)
     torch.testing.assert_close(mid, (fmap[:, 0, 0] + fmap[:, 0, 1]) / 2)
+
+
+def test_heldout_cells_are_one_unaugmented_view_per_withheld_image(scene, encoder):
+    frames = read_scene_h5(scene).split("train")
+    _, held = holdout_split(frames, 2)
+    buf = fill_heldout(held, encoder, OPTS, SHORT_SIDE, seed=SEED)
+    assert buf.image_names == [f.name for f in held] and not buf.has_keypoints
+    assert sorted(buf.view_image.tolist()) == list(range(len(held)))
+    assert len(buf.features) == len(held) * OPTS.samples_per_image
+    for v, i in enumerate(buf.view_image):  # the source pose, no roll; intrinsics only rescaled
+        np.testing.assert_allclose(buf.view_R[v], held[i].R, atol=1e-6)
+        scale = SHORT_SIDE / min(held[i].camera.width, held[i].camera.height)
+        np.testing.assert_allclose(buf.view_K[v][0, 0], held[i].camera.K[0, 0] * scale, rtol=1e-3)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_buffer_features_at_a_precision_repeat_and_bf16_stays_close(scene, encoder, precision):
+    frames = read_scene_h5(scene).split("train")[:1]
+    opts = BufferOptions(size=150, samples_per_image=150, precision=precision)
+    a = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
+    b = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
+    np.testing.assert_array_equal(a.features, b.features)
+    ref = fill_buffer(frames, encoder, BufferOptions(size=150, samples_per_image=150, precision="fp32"),
+                      SHORT_SIDE, seed=SEED).features.astype(np.float32)
+    rel = np.abs(a.features.astype(np.float32) - ref).max() / np.abs(ref).max()
+    assert rel < 0.05, rel  # bf16 keeps 8 bits of mantissa over the encoder's layers
 
 
 def test_holdout_split_withholds_every_kth_mapping_image():

@@ -246,6 +246,22 @@ def test_real_network_runs(tiny_map: tuple[Path, Path]) -> None:
     assert est.cells == 300 and 0.0 <= est.confidence <= 1.0
 
 
+def test_any_map_runs_at_either_precision(tiny_map: tuple[Path, Path]) -> None:
+    """The map's weights are fp16 whatever it was trained at: bf16 queries give fp32 coordinates
+    close to the fp32 query's; `auto` resolves to one of the two."""
+    gray = np.random.default_rng(1).random((120, 160)).astype(np.float32)
+    out = {}
+    for p in ("fp32", "bf16"):
+        reloc = Relocalizer(*tiny_map, options=RelocalizeOptions(precision=p))
+        assert reloc.precision == p
+        out[p] = reloc.scene_coordinates(gray)
+        assert reloc.localize(photo(160, 120), 130.0).cells == 300
+    assert out["bf16"].dtype == np.float64 and np.isfinite(out["bf16"]).all()
+    scale = np.abs(out["fp32"]).max()
+    assert np.abs(out["bf16"] - out["fp32"]).max() < 0.05 * scale
+    assert Relocalizer(*tiny_map).precision in ("fp32", "bf16")
+
+
 def test_input_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     reloc = Relocalizer(*tiny_map)
     with pytest.raises(UsvcError, match="principal point .* outside the 160x120 image"):
@@ -288,6 +304,7 @@ def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     ({"min_inliers": 0}, r"min_inliers=0 must be > 0"),
     ({"min_confidence": 1.5}, r"min_confidence=1.5 must be in \[0, 1\]"),
     ({"focal_tolerance": -0.1}, r"focal_tolerance=-0.1 must be >= 0"),
+    ({"precision": "fp16"}, r"precision='fp16' is not one of \['auto', 'bf16', 'fp32'\]"),
 ])
 def test_options_are_refused_as_typed(tiny_map: tuple[Path, Path], kwargs: dict, message: str) -> None:
     """The value named is the one given, not the threshold rescaled to the working size."""
