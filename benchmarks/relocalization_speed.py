@@ -9,8 +9,9 @@ is the median over --runs queries after --warmup untimed ones; "total" is the me
 per-query sums, so it need not equal the sum of the medians. GFLOP/s is the encoder's only
 (`encoder_flops` over its median time). Prints a table; writes its rows (unrounded), the setup,
 the command line and the machine context to results/benchmarks/relocalization_speed_<device>.json
-(<device>: cpu or cuda, the one that ran). Run:
+(<device>: cpu or cuda, the one that ran; `_bf16` added when the network ran at bf16). Run:
 python benchmarks/relocalization_speed.py [--runs 20] [--device cuda] [--sizes 320x240 640x480]
+    [--models small] [--precision auto|bf16|fp32]
 """
 
 from __future__ import annotations
@@ -21,18 +22,20 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
-from scipy.spatial.transform import Rotation
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import usvc  # noqa: E402,F401  (first: it sets OpenMP's wait policy before torch loads)
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 from _report import write_report  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg  # noqa: E402
+from usvc.core.precision import PRECISIONS, autocast, resolve_precision  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.model.encoder import (  # noqa: E402
     Encoder,
@@ -95,7 +98,7 @@ def sync(device: torch.device) -> None:
 
 @torch.inference_mode()
 def time_queries(encoder: Encoder, head: Head, width: int, height: int, runs: int, warmup: int,
-                 device: torch.device) -> dict[str, float]:
+                 device: torch.device, precision: str = "fp32") -> dict[str, float]:
     """Median ms of each stage over `runs` queries, plus how many PnP solves found the true pose."""
     rng = np.random.default_rng(0)
     image = normalise(rng.random((height, width), dtype=np.float32)).to(device)
@@ -106,10 +109,11 @@ def time_queries(encoder: Encoder, head: Head, width: int, height: int, runs: in
     for k in range(warmup + runs):
         sync(device)
         t0 = time.perf_counter()
-        features = encoder(image)
-        sync(device)
-        t1 = time.perf_counter()
-        coords = head(features)[0].permute(1, 2, 0).double().cpu().numpy()  # as Relocalizer does
+        with autocast(precision, device.type):
+            features = encoder(image)
+            sync(device)
+            t1 = time.perf_counter()
+            coords = head(features)[0].float().permute(1, 2, 0).double().cpu().numpy()  # as Relocalizer does
         t2 = time.perf_counter()
         # The network output is garbage for random weights; PnP gets the synthetic plane instead.
         assert coords.shape[:2] == feature_size(height, width)
@@ -138,6 +142,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cpu or cuda (falls back to cpu if unavailable)")
     ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(320, 240), (640, 480)],
                     metavar="WxH")
+    ap.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
+    ap.add_argument("--precision", choices=PRECISIONS, default="auto",
+                    help="the network's products (relocalize.precision); auto as the Relocalizer resolves it")
     args = ap.parse_args()
     if args.runs < 1:
         ap.error("--runs must be at least 1")
@@ -146,24 +153,25 @@ def main() -> None:
         print(f"note: --device {args.device} requested but CUDA is not available; using cpu")
         device = torch.device("cpu")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    precision = resolve_precision(args.precision, device.type)
     load = os.getloadavg()[0]  # before the runs, as printed
     print(f"device {device} ({name}), torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{os.cpu_count()} cores, load avg {load:.1f}; "
           f"median of {args.runs} runs after {args.warmup} warm-up; PnP: opencv, "
-          f"{OUTLIER_RATIO:.0%} outliers")
+          f"{OUTLIER_RATIO:.0%} outliers; network at {precision}")
     header = (f"{'model':<8} {'weights':<8} {'size':>8} {'encoder ms':>10} {'head ms':>8} {'pnp ms':>8} "
               f"{'total ms':>9} {'GFLOP':>6} {'GFLOP/s':>8} {'pnp ok':>7}")
     print(header)
     print("-" * len(header))
     rows = []
-    for model in MODELS:
+    for model in args.models:
         width, head_width, head_blocks = model_config(model)
         encoder, source = load_encoder(width)
         head = Head(encoder.out_channels, head_width, head_blocks).eval().requires_grad_(False)
         encoder.to(device)
         head.to(device)
         for w, h in args.sizes:
-            r = time_queries(encoder, head, w, h, args.runs, args.warmup, device)
+            r = time_queries(encoder, head, w, h, args.runs, args.warmup, device, precision)
             gflop = encoder_flops(h, w, width) / 1e9
             solved = f"{int(r['solved'])}/{args.runs}"
             print(f"{model:<8} {source:<8} {f'{w}x{h}':>8} {r['encoder']:>10.1f} {r['head']:>8.1f} "
@@ -174,8 +182,9 @@ def main() -> None:
                          "head_ms": r["head"], "pnp_ms": r["pnp"], "total_ms": r["total"], "encoder_gflop": gflop,
                          "encoder_gflops_per_s": gflop / r["encoder"] * 1e3, "pnp_solved": int(r["solved"]),
                          "runs": args.runs})
-    write_report(f"relocalization_speed_{device.type}", {
-        "device": str(device), "device_name": name, "torch_threads": torch.get_num_threads(),
+    suffix = "_bf16" if precision == "bf16" else ""
+    write_report(f"relocalization_speed_{device.type}{suffix}", {
+        "device": str(device), "precision": precision, "device_name": name, "torch_threads": torch.get_num_threads(),
         "cores": os.cpu_count(), "load_avg_1min_before": load, "runs": args.runs, "warmup": args.warmup,
         "median_rule": "element N//2 of the sorted values", "pnp_backend": "opencv", "outlier_ratio": OUTLIER_RATIO,
         "point_noise_m": POINT_NOISE_M, "rows": rows})

@@ -35,9 +35,11 @@ def main(cfg: DictConfig) -> None:
     out, metrics_path = stage_outputs(cfg, "relocalize")
     with atomic_dir(out) as tmp:
         stats = write_results(tmp, frames, results)
-    write_json(metrics_path, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
-    log.info("relocalize %s: %d queries, %d failed, %.0f ms/query", cfg.scene.name, stats["queries"],
-             stats["failed"], stats["ms_per_query"])
+    write_json(metrics_path, {**stats, "precision": relocalizer.precision,
+                              "map_precision": relocalizer.metadata.get("precision", "fp32"),
+                              "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+    log.info("relocalize %s (%s): %d queries, %d failed, %.0f ms/query", cfg.scene.name, relocalizer.precision,
+             stats["queries"], stats["failed"], stats["ms_per_query"])
 
 
 if __name__ == "__main__":
