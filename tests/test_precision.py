@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.test_train_head import synthetic_buffer
+from test_train_head import synthetic_buffer
 from usvc.core import precision as prec
 from usvc.model.head import Head
 from usvc.pipeline.config import ConfigError, compose_for_script, validate
