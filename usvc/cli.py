@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from usvc.core.errors import SceneError, UsvcError
+from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
 
@@ -294,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--no-refine", action="store_true",
                      help="skip keypoint-guided refinement (method=single); on by default when the map has keypoints")
     loc.add_argument("--device", default="cpu")
-    loc.add_argument("--precision", choices=("auto", "bf16", "fp32"), default="auto",
+    loc.add_argument("--precision", choices=PRECISIONS, default="auto",
                      help="the network's products: auto = bf16 where the device runs it natively and faster, "
                           "else fp32 (any map runs at either)")
     loc.add_argument("--json-list", action="store_true",
