@@ -9,6 +9,7 @@ from omegaconf import DictConfig
 from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
 from usvc.core.scene_io import read_scene_h5
+from usvc.landmarks.landmarks_file import LANDMARKS_FILE
 from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
@@ -26,7 +27,8 @@ def main(cfg: DictConfig) -> None:
     paths = scene_paths(cfg)
     frames = read_scene_h5(paths.prepared).split("test")
     options = group_options(cfg, "relocalize")
-    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options, seed=cfg.seed)
+    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options, seed=cfg.seed,
+                              landmarks=paths.landmarks / LANDMARKS_FILE if options.refine == "features" else None)
     mapped = relocalizer.metadata.get("scene")
     if cfg.scene.name != mapped:
         raise UsvcError(f"{paths.map / 'map.pt'} is a map of scene {mapped!r}, not of {cfg.scene.name!r}: "

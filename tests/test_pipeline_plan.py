@@ -61,6 +61,7 @@ def test_first_affected_stage_on_real_dvc_yaml(overrides, first):
 def test_method_files_are_read_per_key():
     assert stages_reading("train.bundle_weight", PLAN) == ["train"]
     assert stages_reading("relocalize.refine", PLAN) == ["relocalize"]
+    assert stages_reading("landmarks.descriptor", PLAN) == ["landmarks"]
     assert stages_reading("method", PLAN) == ["gaussians", "render", "buffer", "train", "relocalize"]
     assert stages_reading("buffer.rendered_views", PLAN) == ["gaussians", "render", "buffer"]
     assert stages_reading("buffer.size", PLAN) == ["buffer"]  # the others track only rendered_views
@@ -77,11 +78,15 @@ def test_scene_group_starts_at_generate_only_for_the_generated_scene():
 def test_split_plan_reuses_everything_before_the_first_stage():
     upstream, rerun = split_plan(PLAN, "relocalize", generated=True)
     assert [st.name for st in upstream] == ["generate", "prepare", "sfm", "gaussians", "keypoints", "render",
-                                            "buffer", "train"]
+                                            "buffer", "train", "landmarks"]
     assert [st.name for st in rerun] == ["relocalize", "metrics"]
     upstream, rerun = split_plan(PLAN, "keypoints", generated=False)
     assert [st.name for st in upstream] == ["prepare", "sfm", "gaussians"]  # a tau sweep reuses the 3DGS fit
-    assert [st.name for st in rerun] == ["keypoints", "render", "buffer", "train", "relocalize", "metrics"]
+    assert [st.name for st in rerun] == ["keypoints", "render", "buffer", "train", "landmarks", "relocalize",
+                                         "metrics"]
+    upstream, rerun = split_plan(PLAN, "landmarks", generated=False)  # a landmarks sweep reuses the map
+    assert [st.name for st in upstream][-1] == "train"
+    assert [st.name for st in rerun] == ["landmarks", "relocalize", "metrics"]
 
 
 def test_unknown_key_is_named():

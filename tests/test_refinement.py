@@ -193,6 +193,9 @@ def test_reprojection_inliers_counts_front_points_within_threshold():
 
 # --- map keypoints ------------------------------------------------------------------------
 
+KEYPOINT_REFINEMENT = RelocalizeOptions(refine="keypoints")  # the paper's refinement (the default is features)
+
+
 def make_map(path: Path, keypoints: np.ndarray | None, metadata: dict | None = None) -> Path:
     torch.manual_seed(0)
     encoder = Encoder(width=0.25)
@@ -250,7 +253,7 @@ def photo() -> np.ndarray:
 
 def test_relocalizer_refines_with_map_keypoints(tmp_path: Path, synthetic_query: np.ndarray):
     path = make_map(tmp_path / "map.pt", KEYPOINTS)
-    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
+    est = Relocalizer(path, tmp_path / "encoder.pt", KEYPOINT_REFINEMENT).localize(photo(), CAM)
     assert est.success and est.refine_kept and est.refine_iterations >= 1
     assert errors(est.R, est.t)[0] < 1e-3 < 0.1 < errors(est.initial_R, est.initial_t)[0]
     assert est.inliers == 300
@@ -259,7 +262,7 @@ def test_relocalizer_refines_with_map_keypoints(tmp_path: Path, synthetic_query:
     assert np.allclose(out["refinement"]["initial_t"], est.initial_t)
     assert set(out["seconds"]) == {"preprocess", "network", "pnp", "refine", "total"}
 
-    off = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(refine=False)).localize(photo(), CAM)
+    off = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(refine="none")).localize(photo(), CAM)
     assert off.refine_iterations == 0 and not off.refine_kept
     assert np.array_equal(off.R, off.initial_R) and errors(off.R, off.t)[0] > 0.1
     assert np.allclose(off.R, est.initial_R)
@@ -269,7 +272,7 @@ def test_relocalizer_without_map_keypoints_warns_and_skips(tmp_path: Path, synth
                                                            caplog: pytest.LogCaptureFixture):
     path = make_map(tmp_path / "map.pt", None)
     with caplog.at_level(logging.WARNING, logger="usvc.relocalize.relocalizer"):
-        reloc = Relocalizer(path, tmp_path / "encoder.pt")
+        reloc = Relocalizer(path, tmp_path / "encoder.pt", KEYPOINT_REFINEMENT)
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "no 3D keypoints" in warnings[0].getMessage()
     est = reloc.localize(photo(), CAM)
@@ -279,7 +282,7 @@ def test_relocalizer_without_map_keypoints_warns_and_skips(tmp_path: Path, synth
 
 def test_write_results_records_refinement(tmp_path: Path, synthetic_query: np.ndarray):
     path = make_map(tmp_path / "map.pt", KEYPOINTS)
-    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
+    est = Relocalizer(path, tmp_path / "encoder.pt", KEYPOINT_REFINEMENT).localize(photo(), CAM)
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
     failed = PoseEstimate(False, nan_R, nan_t, 3, 300, {"preprocess": 0.0, "network": 0.1, "pnp": 0.2,
                                                         "total": 0.3})

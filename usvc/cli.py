@@ -16,6 +16,7 @@ from usvc.core.errors import SceneError, UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
+from usvc.relocalize.options import REFINE
 
 if TYPE_CHECKING:
     from usvc.core.scene import Camera
@@ -194,7 +195,8 @@ def _localize(args: argparse.Namespace) -> int:
     threads.apply(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
-    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=not args.no_refine,
+    refine = "none" if args.no_refine else args.refine
+    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
                                 precision=args.precision)
     if args.min_confidence is not None:
         if not 0.0 <= args.min_confidence <= 1.0:
@@ -204,7 +206,7 @@ def _localize(args: argparse.Namespace) -> int:
         if args.focal_tolerance < 0:
             raise UsvcError(f"--focal-tolerance {args.focal_tolerance:g}: must be >= 0 (0: no check)")
         options = replace(options, focal_tolerance=args.focal_tolerance)
-    relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device)
+    relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device, landmarks=args.landmarks)
     records: list[dict[str, Any]] = []
     posed: list[Posed] = []
     bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
@@ -292,8 +294,12 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--focal-tolerance", type=float,
                      help="refuse a pose when the given focal length differs by more than this (relative) from "
                           "the one the map implies (default: relocalize.focal_tolerance; 0 = no check)")
-    loc.add_argument("--no-refine", action="store_true",
-                     help="skip keypoint-guided refinement (method=single); on by default when the map has keypoints")
+    loc.add_argument("--refine", choices=REFINE, default="features",
+                     help="features (default): the photo's SIFT matched to the map's landmarks, guided by the "
+                          "learned pose; keypoints: the paper's keypoint-guided refinement; none: the learned pose")
+    loc.add_argument("--no-refine", action="store_true", help="the same as --refine none")
+    loc.add_argument("--landmarks", help="the map's landmarks.h5 (default: found beside the map: landmarks.h5 in "
+                                         "its folder, else ../landmarks/landmarks.h5)")
     loc.add_argument("--device", default="cpu")
     loc.add_argument("--precision", choices=PRECISIONS, default="auto",
                      help="the network's products: auto = bf16 where the device runs it natively and faster, "

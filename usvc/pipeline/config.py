@@ -19,6 +19,7 @@ from usvc.core.errors import UsvcError
 from usvc.gaussians.options import GaussiansOptions
 from usvc.generate.params import RoomParams
 from usvc.keypoints.options import KeypointOptions
+from usvc.landmarks.options import LandmarksOptions
 from usvc.model.options import ModelOptions
 from usvc.prepare.options import SceneOptions
 from usvc.relocalize.options import RelocalizeOptions
@@ -42,6 +43,7 @@ class Config:
     generate: RoomParams = field(default_factory=RoomParams)  # the generate group: RoomParams
     sfm: SfmOptions = field(default_factory=SfmOptions)  # the sfm group: SfmOptions
     keypoints: KeypointOptions = field(default_factory=KeypointOptions)  # the keypoints group: KeypointOptions
+    landmarks: LandmarksOptions = field(default_factory=LandmarksOptions)  # the landmarks group: LandmarksOptions
     model: ModelOptions = field(default_factory=ModelOptions)  # the model group: ModelOptions
     buffer: BufferOptions = field(default_factory=BufferOptions)  # the buffer group: BufferOptions
     train: TrainOptions = field(default_factory=TrainOptions)  # the train group: TrainOptions
@@ -110,6 +112,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "generate": RoomParams,
     "sfm": SfmOptions,
     "keypoints": KeypointOptions,
+    "landmarks": LandmarksOptions,
     "model": ModelOptions,
     "buffer": BufferOptions,
     "train": TrainOptions,

@@ -24,6 +24,10 @@ class ScenePaths:
     def keypoints(self) -> Path:
         return self.data_dir / self.scene / "keypoints"
 
+    @property
+    def landmarks(self) -> Path:
+        return self.data_dir / self.scene / "landmarks"
+
     def metrics(self, stage: str) -> Path:
         return self.results_dir / self.scene / f"{stage}.json"
 

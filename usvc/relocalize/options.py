@@ -1,14 +1,17 @@
 """Options of relocalization (the `relocalize` config group): dense RANSAC-PnP on the predicted
-scene coordinates, then keypoint-guided refinement (paper 3.2.2)."""
+scene coordinates, then refinement: by features (the query's SIFT matched to the map's landmarks,
+guided by the learned pose) or keypoint-guided (paper 3.2.2)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from usvc.core.options import in_range, one_of, positive
 from usvc.core.precision import PRECISIONS
 
 BACKENDS = ("pycolmap", "opencv")
+REFINE = ("features", "keypoints", "none")
+EXTRACTORS = ("opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 
 
@@ -19,17 +22,32 @@ class RelocalizeOptions:
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)
     focal_tolerance: float = 0.25  # given focal length vs the one the map implies: a larger relative gap fails; 0 = no check
-    refine: bool = True  # keypoint-guided iterative refinement (paper 3.2.2); maps without keypoints skip it
+    refine: str = "features"  # features: the query's SIFT matched to the map's landmarks, guided by the learned pose | keypoints: the paper's keypoint-guided refinement (3.2.2) | none
     refine_radius_px: float = 8.0  # cells within this radius (working-image px) of a projected keypoint form the mask
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
+    features_extractor: str = "opencv"  # query SIFT: opencv (fast on CPU, RootSIFT) | colmap (the landmarks' own extractor)
+    features_max_keypoints: int = 4096  # refine=features: SIFT keypoints of the query (at the mapping images' short side)
+    features_radii_px: list[float] = field(default_factory=lambda: [96.0, 24.0, 8.0])  # search radius of each guided pass, px at a 480 px short side
+    features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest
+    features_max_error_px: float = 6.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side
+    features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
+    features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
         out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
+        out += one_of(self, "refine", REFINE) + one_of(self, "features_extractor", EXTRACTORS)
         out += positive(self, "max_error_px", "min_inliers", "refine_radius_px", "refine_max_iterations",
-                        "refine_delta", "refine_min_correspondences")
+                        "refine_delta", "refine_min_correspondences", "features_max_keypoints",
+                        "features_max_error_px", "features_view_margin_deg")
+        out += in_range(self, "features_ratio", 0.0, 1.0)
+        if self.features_min_inliers < 4:
+            out.append(f"features_min_inliers={self.features_min_inliers!r} must be >= 4 (a pose needs 4 points)")
+        radii = list(self.features_radii_px)
+        if not radii or not all(isinstance(r, (int, float)) and 0 < r < float("inf") for r in radii):
+            out.append(f"features_radii_px={radii!r} must be one or more positive radii")
         out += in_range(self, "min_confidence", 0.0, 1.0)
         if self.focal_tolerance < 0:
             out.append(f"focal_tolerance={self.focal_tolerance!r} must be >= 0 (0: no check)")

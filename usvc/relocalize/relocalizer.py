@@ -1,5 +1,7 @@
-"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose,
-then keypoint-guided refinement (paper §3.2.2) when the map carries 3D keypoints.
+"""Localize one photo against a trained map: dense scene coordinates -> RANSAC-PnP -> pose, then
+refinement: by features (relocalize.refine=features: the query's SIFT keypoints matched to the
+map's landmarks, guided by that pose, LO-RANSAC PnP; matching against every landmark when the
+learned pose is missing or too far off) or keypoint-guided (paper §3.2.2, refine=keypoints).
 
 This is the one implementation behind the relocalize stage, the Python API and `usvc localize`,
 so benchmark numbers and real use cannot drift apart.
@@ -24,11 +26,20 @@ from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
+from usvc.landmarks.landmarks import Landmarks
+from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
 from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import estimate_focal, solve_pnp
+from usvc.relocalize.feature_refinement import (
+    FeatureMatchOptions,
+    FeatureResult,
+    landmark_descriptors,
+    refine_by_features,
+)
+from usvc.relocalize.pnp import PnPResult, estimate_focal, reprojection_inliers, solve_pnp
+from usvc.relocalize.query_features import extract_sift
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
@@ -44,6 +55,15 @@ CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts ma
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
     return RefineOptions(radius_px=options.refine_radius_px, max_iterations=options.refine_max_iterations,
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
+
+
+def feature_options(options: RelocalizeOptions, short_side: int) -> FeatureMatchOptions:
+    """The features_* settings in px of an image whose short side is `short_side`."""
+    scale = short_side / REFERENCE_SHORT_SIDE
+    return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
+                               ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
+                               min_inliers=options.features_min_inliers,
+                               view_margin_deg=options.features_view_margin_deg)
 
 
 def _nan_R() -> np.ndarray:
@@ -77,6 +97,10 @@ class PoseEstimate:
     camera: Camera | None = None
     focal_estimated: bool = False
     rejected: str = ""  # why a pose RANSAC found is not trusted (low confidence, or intrinsics the map contradicts)
+    refine_method: str = "none"  # the refinement that ran: features | keypoints | none
+    refine_path: str = ""  # which evidence gave the answer: guided | global (features), keypoints, dense
+    feature_inliers: int = 0  # PnP inliers of the feature pose (refine=features), 0 when it found none
+    feature_passes: list = field(default_factory=list)  # per matching pass: kind, radius_px, candidates, matches, inliers
 
     @property
     def confidence(self) -> float:
@@ -95,9 +119,15 @@ class PoseEstimate:
             out["q_wxyz"] = [float(v) for v in matrix_to_quat_wxyz(self.R)]
             out["t"] = [float(v) for v in self.t]
             out["camera_center"] = [float(v) for v in self.center]
-            out["refinement"] = {"iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
-                                 "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)],
-                                 "initial_t": [float(v) for v in self.initial_t]}
+            out["refinement"] = {"method": self.refine_method, "path": self.refine_path,
+                                 "iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
+                                 "feature_inliers": int(self.feature_inliers),
+                                 "learned_pose_kept": self.refine_path in ("dense", "keypoints"),
+                                 "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)]
+                                 if np.isfinite(self.initial_R).all() else None,
+                                 "initial_t": [float(v) for v in self.initial_t] if np.isfinite(self.initial_t).all()
+                                 else None,
+                                 "passes": self.feature_passes}
         if self.rejected:
             out["rejected"] = self.rejected
         if self.camera is not None:
@@ -168,7 +198,10 @@ class Relocalizer:
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
-                 options: RelocalizeOptions | None = None, device: str = "cpu", seed: int = 0) -> None:
+                 options: RelocalizeOptions | None = None, device: str = "cpu", seed: int = 0,
+                 landmarks: str | Path | None = None) -> None:
+        """`landmarks`: the map's landmarks.h5 for refine=features; None finds it beside the map
+        (`landmarks.h5` in the map's folder, else `../landmarks/landmarks.h5` as the pipeline writes it)."""
         if not isinstance(map_path, (str, Path)):
             raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
         device = _check_device(device)
@@ -197,9 +230,29 @@ class Relocalizer:
         self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
             else 1.0
         self.refine_options = refine_options(self.options)
-        self.refine = self.options.refine and self.keypoints_xyz is not None
-        if self.options.refine and self.keypoints_xyz is None:
-            log.warning("map %s has no 3D keypoints: keypoint-guided refinement is skipped", self.map_path)
+        self.refine = self.options.refine == "keypoints" and self.keypoints_xyz is not None
+        if self.options.refine == "keypoints" and self.keypoints_xyz is None:
+            log.warning("map %s has no 3D keypoints: keypoint-guided refinement is off", self.map_path)
+        self.landmarks: Landmarks | None = None
+        self.landmarks_path: Path | None = None
+        if self.options.refine == "features":
+            self._load_landmarks(landmarks)
+
+    def _load_landmarks(self, landmarks: str | Path | None) -> None:
+        """Read and check the map's landmarks; a map without them localizes without refinement."""
+        if landmarks is not None and not isinstance(landmarks, (str, Path)):
+            raise UsvcError(f"landmarks must be the path of a landmarks.h5, got {type(landmarks).__name__}")
+        path = Path(landmarks) if landmarks is not None else landmarks_beside(self.map_path)
+        if path is None:
+            log.warning("map %s has no landmarks beside it (landmarks.h5): refinement by features is off",
+                        self.map_path)
+            return
+        found = read_landmarks(path)
+        why = landmarks_disagree(found, self.metadata.get("scene"), self.keypoints_xyz)
+        if why:
+            raise UsvcError(f"{path} are not the landmarks of map {self.map_path}: {why}")
+        self.landmarks, self.landmarks_path = found, path
+        self._landmark_desc = landmark_descriptors(found)
 
     def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
         """The image at the map's working short side, as its head was trained, and the resize factor."""
@@ -250,6 +303,7 @@ class Relocalizer:
         camera = None
         if given is not None:
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
+        full_gray, full_camera = gray, camera  # undistorted, at the photo's size: what features see
         gray, resize = self.working_image(gray)
         if resize != 1.0 and camera is not None:
             camera = camera.scaled(gray.shape[1], gray.shape[0])
@@ -266,18 +320,23 @@ class Relocalizer:
             if camera is not None:
                 f = camera.params[0] / resize
                 given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
-        if camera is None:
+                full_camera = given
+        if camera is None and self.landmarks is None:
             t3 = time.perf_counter()
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
             return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True)
-        result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
-                           seed=self.seed, min_inliers=self.options.min_inliers,
-                           backend=self.options.backend)
+        if camera is not None:
+            result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
+                               seed=self.seed, min_inliers=self.options.min_inliers,
+                               backend=self.options.backend)
+        else:  # no focal length from the map: features may still find the pose, with an assumed one
+            result = PnPResult(False, _nan_R(), _nan_t(), np.zeros(0, bool), 0, 0.0)
         rejected = ""
-        if result.success and intrinsics is not None and self.options.focal_tolerance > 0:
+        if result.success and intrinsics is not None and self.options.focal_tolerance > 0 and self.landmarks is None:
             rejected = self._focal_disagreement(pixels, coords, camera, threshold)
         t3 = time.perf_counter()
         R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
+        path, feature = "dense", None
         if result.success and self.refine and not rejected:
             assert self.keypoints_xyz is not None
             ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
@@ -286,17 +345,63 @@ class Relocalizer:
                               seed=self.seed, min_inliers=self.options.min_inliers)
             iterations, kept = ref.iterations, ref.kept
             if kept:
-                R, t, inliers = ref.R, ref.t, ref.final_inliers
+                R, t, inliers, path = ref.R, ref.t, ref.final_inliers, "keypoints"
+        if self.landmarks is not None:
+            if full_camera is None:  # COLMAP's prior for a photo without calibration
+                full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
+                given = full_camera
+            feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None)
+            if feature.success and not feature_rejected:
+                R, t, path = feature.R, feature.t, feature.path
+                if camera is not None:  # the dense support of the final pose, for `confidence`
+                    inliers = int(reprojection_inliers(camera, pixels, coords.reshape(-1, 3), R, t, threshold).sum())
+            elif feature_rejected:
+                rejected = feature_rejected
+            elif result.success and intrinsics is not None and self.options.focal_tolerance > 0:
+                # no feature pose: the dense answer stands only if the map agrees with the intrinsics
+                rejected = self._focal_disagreement(pixels, coords, camera, threshold)
         t4 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
                    "total": t4 - t0}
-        if result.success and not rejected and inliers < self.options.min_confidence * hc * wc:
+        by_features = path in ("guided", "global")
+        if result.success and not rejected and not by_features and inliers < self.options.min_confidence * hc * wc:
             # a pose, but one that too few cells agree with: wrong answers look like this
             rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
-        success = result.success and not rejected
+        success = (result.success or by_features) and not rejected
         if not success:
             R, t = _nan_R(), _nan_t()
         return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
-                            initial_R=result.R.copy() if success else _nan_R(),
-                            initial_t=result.t.copy() if success else _nan_t(), refine_iterations=iterations,
-                            refine_kept=kept, camera=given, focal_estimated=intrinsics is None, rejected=rejected)
+                            initial_R=result.R.copy() if success and result.success else _nan_R(),
+                            initial_t=result.t.copy() if success and result.success else _nan_t(),
+                            refine_iterations=iterations, refine_kept=kept or by_features, camera=given,
+                            focal_estimated=intrinsics is None, rejected=rejected,
+                            refine_method=self.options.refine if (self.refine or self.landmarks is not None)
+                            else "none", refine_path=path if success else "",
+                            feature_inliers=feature.inliers if feature is not None else 0,
+                            feature_passes=feature.passes if feature is not None else [])
+
+    def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool) -> tuple[FeatureResult, str]:
+        """Refinement by features on the undistorted photo (resized to the mapping images' short
+        side when larger) from the dense pose; returns the result and why it is not trusted ("")."""
+        assert self.landmarks is not None
+        short = min(gray01.shape)
+        if short > self.landmarks.image_short_side:
+            gray01, _ = resize_to_short_side(gray01, self.landmarks.image_short_side)
+            camera = camera.scaled(gray01.shape[1], gray01.shape[0])
+        feats = extract_sift(np.clip(np.rint(gray01 * 255.0), 0, 255).astype(np.uint8),
+                             self.options.features_max_keypoints, self.options.features_extractor)
+        opts = feature_options(self.options, min(gray01.shape))
+        prior = (dense.R, dense.t) if dense.success else (None, None)
+        found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
+                                   self.seed)
+        if not found.success or not check_focal or self.options.focal_tolerance <= 0:
+            return found, ""
+        estimate = estimate_focal(found.match_uv, found.match_xyz, camera.width, camera.height, opts.max_error_px,
+                                  self.seed)
+        if estimate is None:
+            return found, ""
+        ratio = estimate.params[0] / float(np.sqrt(camera.focal[0] * camera.focal[1]))
+        if abs(np.log(ratio)) <= np.log1p(self.options.focal_tolerance):
+            return found, ""
+        return found, (f"the matched features imply a focal length {ratio:.2f}x the given one "
+                       f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")

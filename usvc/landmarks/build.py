@@ -1,0 +1,79 @@
+"""Build landmarks from the sfm stage's tracks (the landmarks stage's step)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from usvc.core.errors import UsvcError
+from usvc.landmarks.landmarks import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.options import LandmarksOptions
+from usvc.sfm.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+def _track_descriptors(tracks: Tracks, keep: np.ndarray, how: str) -> np.ndarray:
+    """One unit descriptor per kept point: the renormalised mean or the medoid of its track."""
+    unit = unit_descriptors(tracks.obs_descriptor)
+    point = tracks.point_of_obs()
+    n = len(tracks.xyz)
+    mean = np.zeros((n, 128), dtype=np.float64)
+    np.add.at(mean, point, unit)
+    mean = unit_descriptors(mean)
+    if how == "mean":
+        return mean[keep]
+    # medoid: the observation closest to its track's mean direction (the most central one under
+    # cosine distance for unit vectors); ties go to the first observation.
+    closeness = np.einsum("ij,ij->i", unit, mean[point])
+    best = np.full(n, -1, dtype=np.int64)
+    order = np.lexsort((-closeness, point))  # per point, the closest first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = point[order][1:] != point[order][:-1]
+    best[point[order][first]] = order[first]
+    return unit[best[keep]]
+
+
+def _view_cones(tracks: Tracks, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean unit direction from each kept point to its observing cameras, and the widest angle."""
+    centers = -np.einsum("mji,mj->mi", tracks.R, tracks.t)  # C = -R^T t
+    point = tracks.point_of_obs()
+    rays = centers[tracks.obs_image] - tracks.xyz[point]
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    mean = np.zeros((len(tracks.xyz), 3))
+    np.add.at(mean, point, rays)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    cos = np.clip(np.einsum("ij,ij->i", rays, mean[point]), -1.0, 1.0)
+    widest = np.zeros(len(tracks.xyz))
+    np.maximum.at(widest, point, np.degrees(np.arccos(cos)))
+    return mean[keep].astype(np.float32), widest[keep].astype(np.float32)
+
+
+def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: LandmarksOptions) -> Landmarks:
+    """The landmarks of one SfM model (points in the order of tracks.h5, filtered by `opts`)."""
+    length = tracks.track_length
+    keep = (length >= opts.min_track_length) & (tracks.error <= opts.max_error_px)
+    keep_idx = np.flatnonzero(keep)
+    if opts.max_landmarks and len(keep_idx) > opts.max_landmarks:
+        # longest tracks first (seen from most images, the most likely to be seen again); stable
+        order = np.argsort(-length[keep_idx], kind="stable")[: opts.max_landmarks]
+        keep_idx = np.sort(keep_idx[order])
+    if len(keep_idx) < 4:
+        raise UsvcError(f"scene {scene!r}: only {len(keep_idx)} SfM points qualify as landmarks "
+                        f"(landmarks.min_track_length={opts.min_track_length}, "
+                        f"landmarks.max_error_px={opts.max_error_px:g}); a pose needs at least 4")
+    desc = _track_descriptors(tracks, keep_idx, opts.descriptor)
+    view_dir, view_angle = _view_cones(tracks, keep_idx)
+    log.info("landmarks %s: %d of %d SfM points (%s descriptors)", scene, len(keep_idx), len(tracks.xyz),
+             opts.descriptor)
+    return Landmarks(scene=scene, xyz=tracks.xyz[keep_idx].astype(np.float64), descriptor=encode_descriptors(desc),
+                     view_dir=view_dir, view_angle_deg=view_angle,
+                     track_length=length[keep_idx].astype(np.int32), image_short_side=int(image_short_side))
+
+
+def landmark_stats(landmarks: Landmarks, tracks: Tracks) -> dict:
+    return {"landmarks": len(landmarks), "points": int(len(tracks.xyz)),
+            "mean_track_length": float(landmarks.track_length.mean()),
+            "median_view_angle_deg": float(np.median(landmarks.view_angle_deg)),
+            "image_short_side": landmarks.image_short_side}

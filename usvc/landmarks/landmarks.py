@@ -1,0 +1,63 @@
+"""Landmarks: position, one SIFT descriptor, and where the point was seen from (built from the SfM
+tracks by usvc.landmarks.build).
+
+A landmark is a triangulated SfM point with a single descriptor standing for its track (the mean
+of the track's unit descriptors, as Active Search keeps per point, or the track's medoid), the
+mean direction from the point to the cameras that saw it, and the widest angle between that
+direction and any of them. At query time a landmark is a candidate only when the camera sees it
+from within that cone (plus a margin): a point on the far side of an object is not matched.
+
+Descriptors are COLMAP's SIFT (L1-root normalised) in its uint8 encoding (512 x value, clipped
+at 255); `unit_descriptors` turns them into unit vectors for matching.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from usvc.core.errors import UsvcError
+
+DESCRIPTOR_SCALE = 512.0  # COLMAP's uint8 SIFT encoding
+
+
+@dataclass
+class Landmarks:
+    scene: str  # the scene whose SfM model they come from
+    xyz: np.ndarray  # (N,3) float64 world positions (the SfM points, bit for bit)
+    descriptor: np.ndarray  # (N,128) uint8, COLMAP's SIFT encoding
+    view_dir: np.ndarray  # (N,3) float32 unit mean direction from the point to its cameras
+    view_angle_deg: np.ndarray  # (N,) float32 widest angle between view_dir and a camera that saw it
+    track_length: np.ndarray  # (N,) int32 observations of the point
+    image_short_side: int  # median short side (px) of the mapping images the descriptors come from
+
+    def __post_init__(self) -> None:
+        n = len(self.xyz)
+        shapes = {"xyz": (self.xyz.shape, (n, 3)), "descriptor": (self.descriptor.shape, (n, 128)),
+                  "view_dir": (self.view_dir.shape, (n, 3)), "view_angle_deg": (self.view_angle_deg.shape, (n,)),
+                  "track_length": (self.track_length.shape, (n,))}
+        bad = [f"{k} {got}, expected {want}" for k, (got, want) in shapes.items() if got != want]
+        if bad:
+            raise UsvcError(f"landmarks of scene {self.scene!r} are inconsistent: {'; '.join(bad)}")
+        if not (np.isfinite(self.xyz).all() and np.isfinite(self.view_dir).all()
+                and np.isfinite(self.view_angle_deg).all()):
+            raise UsvcError(f"landmarks of scene {self.scene!r} have non-finite positions or directions")
+        if self.image_short_side <= 0:
+            raise UsvcError(f"landmarks of scene {self.scene!r}: image_short_side must be positive, "
+                            f"got {self.image_short_side}")
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+def unit_descriptors(descriptor: np.ndarray) -> np.ndarray:
+    """uint8 (or float) SIFT descriptors -> float32 unit rows (zero rows stay zero)."""
+    d = np.asarray(descriptor, dtype=np.float32)
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.maximum(n, 1e-12)
+
+
+def encode_descriptors(unit: np.ndarray) -> np.ndarray:
+    """Unit float descriptors -> COLMAP's uint8 encoding."""
+    return np.clip(np.round(np.asarray(unit, dtype=np.float64) * DESCRIPTOR_SCALE), 0, 255).astype(np.uint8)
