@@ -1,0 +1,233 @@
+"""Refinement by features: landmarks from SfM tracks, guided matching from the learned pose, the
+fallback to matching every landmark, and how the relocalizer finds, checks and reports them.
+
+The synthetic scene: 3D points on a smooth surface in front of a known camera, each with a
+random unit descriptor (its landmark); the query's keypoints are the visible points' projections
+plus 0.3 px noise, with their descriptors slightly perturbed, and as many distractor keypoints
+with unrelated descriptors. Exact matches then pin the pose far below the prior's error.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_refinement import CAM, KEYPOINTS, R_TRUE, T_TRUE, backproject, errors, make_map, photo, synthetic_query  # noqa: F401
+
+from usvc.core.errors import UsvcError
+from usvc.landmarks.build import build_landmarks
+from usvc.landmarks.landmarks import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmarks_file import LANDMARKS_FILE, landmarks_disagree, read_landmarks, write_landmarks
+from usvc.landmarks.options import LandmarksOptions
+from usvc.relocalize import relocalizer as relocalizer_module
+from usvc.relocalize.feature_refinement import (
+    FeatureMatchOptions,
+    global_matches,
+    guided_matches,
+    refine_by_features,
+    visible_landmarks,
+)
+from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer, feature_options
+from usvc.sfm.tracks import Tracks
+
+OPTS = FeatureMatchOptions(radii_px=(24.0, 6.0, 2.0), ratio=0.8, max_error_px=1.5, min_inliers=12,
+                           view_margin_deg=45.0)
+N_POINTS = 400
+
+
+def scene(seed: int = 0) -> tuple[Landmarks, QueryFeatures]:
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform([4, 4], [CAM.width - 4, CAM.height - 4], (N_POINTS, 2))
+    xyz = backproject(uv, R_TRUE, T_TRUE)
+    desc = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)  # sparse-ish, SIFT-like positive rows
+    center = -R_TRUE.T @ T_TRUE
+    view = center - xyz
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    landmarks = Landmarks("synthetic", xyz, encode_descriptors(desc), view.astype(np.float32),
+                          np.full(N_POINTS, 5.0, np.float32), np.full(N_POINTS, 3, np.int32), 120)
+    noisy = unit_descriptors(desc + 0.02 * rng.random(desc.shape))
+    distract_uv = rng.uniform([0, 0], [CAM.width, CAM.height], (N_POINTS, 2))
+    distract = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
+    feats = QueryFeatures(np.concatenate([uv + rng.normal(0, 0.3, uv.shape), distract_uv]),
+                          np.concatenate([noisy, distract]).astype(np.float32))
+    return landmarks, feats
+
+
+def prior(rot_deg: float, shift_frac: float) -> tuple[np.ndarray, np.ndarray]:
+    """The true pose turned by rot_deg and moved by shift_frac of the median depth (2.0)."""
+    R = Rotation.from_rotvec(np.radians(rot_deg) * np.array([0.0, 1.0, 0.0])).as_matrix() @ R_TRUE
+    return R, T_TRUE + np.array([shift_frac * 2.0, 0.0, 0.0])
+
+
+def test_guided_matching_finds_the_exact_pose_from_a_perturbed_prior():
+    landmarks, feats = scene()
+    R0, t0 = prior(5.0, 0.10)
+    assert errors(R0, t0)[0] > 4.0  # the prior is 5 deg off
+    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
+    assert out.success and out.path == "guided"
+    rot, trans = errors(out.R, out.t)
+    assert rot < 0.1 and trans < 0.005  # 0.3 px keypoint noise over ~400 matches
+    assert out.inliers >= 0.8 * N_POINTS
+    assert [p["kind"] for p in out.passes] == ["guided"] * 3
+    assert [p["radius_px"] for p in out.passes] == list(OPTS.radii_px)
+
+
+def test_a_prior_outside_the_radius_falls_back_to_matching_every_landmark():
+    landmarks, feats = scene()
+    R0, t0 = prior(40.0, 0.5)  # projections land far outside 24 px
+    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
+    assert out.success and out.path == "global"
+    assert out.passes[0]["kind"] == "guided" and out.passes[0]["inliers"] == 0
+    assert out.passes[1]["kind"] == "global"
+    rot, trans = errors(out.R, out.t)
+    assert rot < 0.1 and trans < 0.005
+    # no prior at all: straight to the global match
+    none = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, None, None, OPTS)
+    assert none.success and none.path == "global" and none.passes[0]["kind"] == "global"
+
+
+def test_no_pose_from_features_of_another_scene():
+    landmarks, _ = scene(0)
+    _, other = scene(1)  # same layout, unrelated descriptors
+    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), other, CAM, *prior(5.0, 0.1), OPTS)
+    assert not out.success and out.path == "" and "no pose" in out.why
+    assert out.R is None and out.t is None
+
+
+def test_guided_matches_stay_within_the_radius_and_are_one_to_one():
+    landmarks, feats = scene()
+    idx, uv = visible_landmarks(landmarks, CAM, R_TRUE, T_TRUE, 45.0)
+    assert len(idx) == N_POINTS
+    li, ki = guided_matches(uv, unit_descriptors(landmarks.descriptor)[idx], feats, 3.0, 0.8)
+    assert len(li) > 0.9 * N_POINTS
+    assert np.all(np.linalg.norm(uv[li] - feats.uv[ki], axis=1) <= 3.0)
+    assert len(set(ki.tolist())) == len(ki)
+    assert np.mean(idx[li] == ki) > 0.99  # keypoint k of the first N_POINTS is landmark k
+    gl, gk = global_matches(unit_descriptors(landmarks.descriptor), feats, 0.8)
+    assert len(gl) > 0.9 * N_POINTS and np.mean(gl == gk) > 0.99
+
+
+def test_landmarks_behind_or_seen_from_the_other_side_are_not_candidates():
+    landmarks, _ = scene()
+    flipped = Landmarks("synthetic", landmarks.xyz, landmarks.descriptor, -landmarks.view_dir,
+                        landmarks.view_angle_deg, landmarks.track_length, 120)
+    assert len(visible_landmarks(flipped, CAM, R_TRUE, T_TRUE, 45.0)[0]) == 0
+    away = Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix() @ R_TRUE  # same centre, looking back
+    t_away = -away @ (-R_TRUE.T @ T_TRUE)
+    assert len(visible_landmarks(landmarks, CAM, away, t_away, 180.0)[0]) == 0
+
+
+def tracks_of(landmarks: Landmarks) -> Tracks:
+    """Tracks with two observations per point (cameras at the true pose), descriptors as given."""
+    n = len(landmarks)
+    obs_desc = np.repeat(landmarks.descriptor, 2, axis=0)
+    return Tracks(image_names=["a.jpg", "b.jpg"], R=np.stack([R_TRUE, R_TRUE]),
+                  t=np.stack([T_TRUE, T_TRUE + [0.1, 0, 0]]), K=np.stack([CAM.K, CAM.K]),
+                  point_id=np.arange(n), xyz=landmarks.xyz, rgb=np.zeros((n, 3), np.uint8),
+                  error=np.full(n, 0.5, np.float32), offset=np.arange(0, 2 * n + 1, 2),
+                  obs_image=np.tile([0, 1], n).astype(np.int32), obs_uv=np.zeros((2 * n, 2), np.float32),
+                  obs_descriptor=obs_desc, obs_error=np.full(2 * n, 0.5, np.float32))
+
+
+@pytest.mark.parametrize("how", ["mean", "medoid"])
+def test_build_landmarks_keeps_points_and_descriptors(how: str, tmp_path: Path):
+    landmarks, _ = scene()
+    built = build_landmarks(tracks_of(landmarks), "synthetic", 120, LandmarksOptions(descriptor=how))
+    assert np.array_equal(built.xyz, landmarks.xyz)  # the SfM points bit for bit
+    assert np.abs(built.descriptor.astype(int) - landmarks.descriptor.astype(int)).max() <= 1
+    assert np.all(built.view_angle_deg < 10) and np.allclose(np.linalg.norm(built.view_dir, axis=1), 1, atol=1e-5)
+    write_landmarks(tmp_path / LANDMARKS_FILE, built)
+    back = read_landmarks(tmp_path / LANDMARKS_FILE)
+    assert back.scene == "synthetic" and back.image_short_side == 120
+    assert np.array_equal(back.xyz, built.xyz) and np.array_equal(back.descriptor, built.descriptor)
+    few = build_landmarks(tracks_of(landmarks), "synthetic", 120, LandmarksOptions(max_landmarks=50))
+    assert len(few) == 50
+    with pytest.raises(UsvcError, match="qualify as landmarks"):
+        build_landmarks(tracks_of(landmarks), "synthetic", 120, LandmarksOptions(min_track_length=3))
+
+
+def test_landmarks_of_another_scene_are_refused(tmp_path: Path):
+    landmarks, _ = scene()
+    assert landmarks_disagree(landmarks, "synthetic", landmarks.xyz[:10]) == ""
+    assert "of scene 'synthetic', the map of 'office'" in landmarks_disagree(landmarks, "office", None)
+    assert "another SfM model" in landmarks_disagree(landmarks, "synthetic", landmarks.xyz[:10] + 1e-3)
+    # a map whose keypoints are not among the landmarks beside it: refused, one line, naming both
+    path = make_map(tmp_path / "map.pt", KEYPOINTS, {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    with pytest.raises(UsvcError, match="are not the landmarks of map") as info:
+        Relocalizer(path, tmp_path / "encoder.pt")
+    assert "\n" not in str(info.value) and "map.pt" in str(info.value)
+
+
+def test_relocalizer_refines_by_features_and_reports_the_path(tmp_path: Path, synthetic_query, monkeypatch):
+    landmarks, feats = scene()
+    (tmp_path / "map").mkdir()
+    (tmp_path / "landmarks").mkdir()
+    path = make_map(tmp_path / "map" / "map.pt", landmarks.xyz[:10].astype(np.float32),
+                    {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / "landmarks" / LANDMARKS_FILE, landmarks)  # the pipeline's layout
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    reloc = Relocalizer(path, tmp_path / "map" / "encoder.pt")
+    assert reloc.landmarks_path == tmp_path / "landmarks" / LANDMARKS_FILE
+    est = reloc.localize(photo(), CAM)
+    assert est.success and est.refine_path == "guided" and est.feature_inliers >= 0.8 * N_POINTS
+    assert errors(est.R, est.t)[0] < 0.1 < errors(est.initial_R, est.initial_t)[0]
+    rec = est.to_json()["refinement"]
+    assert rec["method"] == "features" and rec["path"] == "guided" and rec["learned_pose_kept"] is False
+    assert rec["feature_inliers"] == est.feature_inliers and len(rec["passes"]) == 3
+    # the same map with refine=none: the learned pose, untouched
+    plain = Relocalizer(path, tmp_path / "map" / "encoder.pt", RelocalizeOptions(refine="none")).localize(photo(), CAM)
+    assert plain.refine_path == "dense" and np.allclose(plain.R, est.initial_R)
+
+
+def test_features_from_another_place_fall_back_to_the_dense_answer(tmp_path: Path, synthetic_query, monkeypatch):
+    landmarks, _ = scene(0)
+    _, other = scene(1)
+    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
+             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: other)
+    est = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt").localize(photo(), CAM)
+    assert est.refine_path == "dense" and est.feature_inliers == 0
+    assert est.to_json()["refinement"]["learned_pose_kept"] is True
+    assert est.to_json()["refinement"]["passes"][-1]["kind"] == "global"
+
+
+def test_a_map_without_landmarks_localizes_with_one_note(tmp_path: Path, synthetic_query,
+                                                         caplog: pytest.LogCaptureFixture):
+    make_map(tmp_path / "map.pt", KEYPOINTS)
+    with caplog.at_level(logging.WARNING, logger="usvc.relocalize.relocalizer"):
+        reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+    notes = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(notes) == 1 and "refinement by features is off" in notes[0]
+    est = reloc.localize(photo(), CAM)
+    assert est.success and est.refine_path == "dense" and est.to_json()["refinement"]["method"] == "none"
+
+
+def test_feature_radii_scale_with_the_image():
+    opts = feature_options(RelocalizeOptions(features_radii_px=[96.0, 24.0], features_max_error_px=6.0), 240)
+    assert opts.radii_px == (48.0, 12.0) and opts.max_error_px == 3.0
+
+
+@pytest.mark.parametrize(("key", "value"), [("refine", "yes"), ("features_extractor", "orb"),
+                                            ("features_ratio", 1.5), ("features_min_inliers", 3),
+                                            ("features_radii_px", []), ("features_radii_px", [8.0, -1.0])])
+def test_bad_feature_options_are_named(key: str, value: object):
+    problems = RelocalizeOptions(**{key: value}).problems()
+    assert len(problems) == 1 and problems[0].startswith(f"{key}=")
+
+
+@pytest.mark.parametrize("extractor", ["opencv", "colmap"])
+def test_sift_extractors_give_unit_descriptors_in_colmap_pixels(extractor: str):
+    rng = np.random.default_rng(0)
+    img = (rng.random((120, 160)) * 255).astype(np.uint8)
+    img = np.kron(img[::4, ::4], np.ones((4, 4), np.uint8))[:120, :160]  # blocks: corners SIFT finds
+    feats = extract_sift(img, 500, extractor)
+    assert len(feats) > 20 and feats.descriptor.dtype == np.float32
+    assert np.allclose(np.linalg.norm(feats.descriptor, axis=1), 1.0, atol=1e-3)
+    assert np.all(feats.descriptor >= 0)
+    assert np.all((feats.uv >= 0) & (feats.uv <= [160, 120]))
