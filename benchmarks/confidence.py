@@ -1,7 +1,8 @@
-"""How well does `confidence` (inlier fraction of the cells) separate right answers from wrong ones?
+"""How well do `success` and `confidence` (inlier fraction of the cells) separate right answers from wrong ones?
 
-For every ``--scene-dir`` (a scene after its relocalize stage: prepared/, sfm/, map/) this
-localizes, with that scene's map and no confidence threshold:
+For every ``--scene-dir`` (a scene after its relocalize stage: prepared/, sfm/, map/, landmarks/)
+this localizes, with that scene's map, the default refinement (``--refine`` to change it) and
+``--min-confidence`` (default 0: no confidence threshold, so the table can sweep it):
 - each query as it is (known intrinsics), and turned sideways (90°, intrinsics turned with it,
   ground truth turned with it), and with its focal length given 2x too large and 2x too small;
 - pure noise images of the query size;
@@ -39,6 +40,7 @@ from usvc.core.exif import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402
@@ -68,14 +70,14 @@ def _answer(est, kind: str, scene: str, R_gt=None, t_gt=None, depth: float = 1.0
         tr = float(translation_error(est.R, est.t, R_gt, t_gt))
         right = rot < ROT_DEG and tr < TRANS_FRAC * depth
     return {"scene": scene, "kind": kind, "success": bool(est.success), "confidence": est.confidence,
-            "right": right, "rejected": est.rejected}
+            "right": right, "rejected": est.rejected, "path": est.refine_path,
+            "feature_inliers": int(est.feature_inliers)}
 
 
-def run_scene(scene_dir: Path, foreign: list[Path], noise: int, seed: int, focal_tolerance: float) -> list[dict]:
+def run_scene(scene_dir: Path, foreign: list[Path], noise: int, seed: int, options: RelocalizeOptions) -> list[dict]:
     scene = read_scene_h5(scene_dir / "prepared")
     depth = median_scene_depth(read_tracks(scene_dir / "sfm" / "tracks.h5"))
-    reloc = Relocalizer(scene_dir / "map" / "map.pt", options=RelocalizeOptions(min_confidence=0.0,
-                                                                               focal_tolerance=focal_tolerance))
+    reloc = Relocalizer(scene_dir / "map" / "map.pt", options=options)
     name = scene.name
     rows = []
     queries = scene.split("test")
@@ -119,7 +121,11 @@ def thresholds_report(rows: list[dict], precision: float) -> dict:
                       "precision": float((accepted & right).sum() / n_acc) if n_acc else 1.0,
                       "recall": float((accepted & right).sum() / n_right) if n_right else 0.0})
     chosen = next((t for t in table if t["precision"] >= precision), None)
-    return {"n_answers": len(rows), "n_right": n_right, "chosen": chosen, "table": table}
+    n_acc = int(success.sum())
+    as_run = {"accepted": n_acc, "wrong_accepted": int((success & ~right).sum()),
+              "precision": float((success & right).sum() / n_acc) if n_acc else 1.0,
+              "recall": float((success & right).sum() / n_right) if n_right else 0.0}
+    return {"n_answers": len(rows), "n_right": n_right, "as_run": as_run, "chosen": chosen, "table": table}
 
 
 def main() -> None:
@@ -131,6 +137,10 @@ def main() -> None:
     parser.add_argument("--precision", type=float, default=0.99)
     parser.add_argument("--focal-tolerance", type=float, default=0.25,
                         help="relocalize.focal_tolerance during the run (0: no focal check)")
+    parser.add_argument("--refine", choices=REFINE, default=RelocalizeOptions().refine)
+    parser.add_argument("--min-confidence", type=float, default=0.0,
+                        help="relocalize.min_confidence during the run (0: sweep it in the table; "
+                             f"{RelocalizeOptions().min_confidence:g}: the default, as_run then gives its figures)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -139,20 +149,23 @@ def main() -> None:
     for scene_dir in args.scene_dir:
         own = scene_dir.resolve()
         foreign = _foreign_photos([f for f in args.foreign if own.name not in str(f.resolve())], args.foreign_per_folder)
-        rows += run_scene(scene_dir, foreign, args.noise, seed=0, focal_tolerance=args.focal_tolerance)
+        options = RelocalizeOptions(min_confidence=args.min_confidence, focal_tolerance=args.focal_tolerance,
+                                    refine=args.refine)
+        rows += run_scene(scene_dir, foreign, args.noise, seed=0, options=options)
     kinds = sorted({r["kind"] for r in rows})
     by_kind = {}
     for k in kinds:
         sel = [r for r in rows if r["kind"] == k]
         c = np.array([r["confidence"] for r in sel])
         by_kind[k] = {"n": len(sel), "success": sum(r["success"] for r in sel), "right": sum(r["right"] for r in sel),
-                      "rejected_focal": sum(r["rejected"].startswith("the image implies") for r in sel),
+                      "rejected_focal": sum("imply a focal length" in r["rejected"] for r in sel),
+                      "paths": {p: sum(r["path"] == p for r in sel) for p in sorted({r["path"] for r in sel})},
                       "confidence_min": float(c.min()), "confidence_median": float(np.median(c)),
                       "confidence_max": float(c.max()),
                       "confidence_max_of_wrong": float(max((r["confidence"] for r in sel if not r["right"]), default=0.0)),
                       "confidence_min_of_right": float(min((r["confidence"] for r in sel if r["right"]), default=1.0))}
     report = {"scenes": [str(s) for s in args.scene_dir], "foreign": [str(f) for f in args.foreign],
-              "focal_tolerance": args.focal_tolerance,
+              "focal_tolerance": args.focal_tolerance, "refine": args.refine, "min_confidence": args.min_confidence,
               "by_kind": by_kind, **thresholds_report(rows, args.precision), "answers": rows}
     text = json.dumps(report, indent=1)
     print(json.dumps({k: v for k, v in report.items() if k not in ("table", "answers")}, indent=1))

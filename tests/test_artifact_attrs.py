@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from conftest import REPO
 
+from usvc.landmarks.landmarks import Landmarks
+from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.buffer.build import TrainingBuffer, write_buffer
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_io import write_scene_h5
@@ -95,8 +97,16 @@ def _queries_h5(d: Path) -> Path:
     return d / "queries.h5"
 
 
+def _landmarks_h5(d: Path) -> Path:
+    lm = Landmarks("scene", np.zeros((4, 3)), np.zeros((4, 128), np.uint8), np.tile([0, 0, 1.0], (4, 1)).astype(np.float32),
+                   np.full(4, 5.0, np.float32), np.full(4, 2, np.int32), 6)
+    write_landmarks(d / "landmarks.h5", lm)
+    return d / "landmarks.h5"
+
+
 ARTIFACTS = {"scene.h5": _scene_h5, "tracks.h5": _tracks_h5, "keypoints.h5": _keypoints_h5,
-             "buffer.h5": _buffer_h5, "render.h5": _render_h5, "queries.h5": _queries_h5}
+             "buffer.h5": _buffer_h5, "render.h5": _render_h5, "queries.h5": _queries_h5,
+             "landmarks.h5": _landmarks_h5}
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,84 @@
+"""Time real queries end to end (photo in, pose out) with each refinement, on a scene's own map.
+
+For a scene folder after its landmarks and train stages (prepared/, map/, landmarks/), every
+query photo is localized with refine = none, keypoints and features (the default), at the
+photo's own size and, with --size WxH, resized to that size (intrinsics scaled with it; a
+portrait photo gets the size turned). Each figure is the median over the queries after --warmup
+untimed ones, split as the relocalizer reports it (preprocess, network, pnp, refine, total);
+the map's size on disk (head, landmarks) is recorded beside the SfM model's. Writes
+results/benchmarks/query_speed_<scene>.json with the command line and the machine context.
+Run (nothing else heavy running, threads as the product uses them):
+python benchmarks/query_speed.py --scene-dir data/bird --size 640x480
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import usvc  # noqa: E402,F401  (first: it sets OpenMP's wait policy before torch loads)
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from _report import scene_of, write_report  # noqa: E402
+
+from usvc.core.exif import read_image_bgr  # noqa: E402
+from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.relocalize.options import REFINE  # noqa: E402
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
+
+
+def _megabytes(path: Path) -> float:
+    files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
+    return sum(p.stat().st_size for p in files) / 2**20
+
+
+def _photos(scene_dir: Path, size: tuple[int, int] | None) -> list[tuple[np.ndarray, tuple]]:
+    out = []
+    for f in read_scene_h5(scene_dir / "prepared").split("test"):
+        rgb = cv2.cvtColor(read_image_bgr(f.image_path), cv2.COLOR_BGR2RGB)
+        (fx, fy), (cx, cy) = f.camera.focal, f.camera.principal_point
+        if size is not None:
+            w, h = size if rgb.shape[1] >= rgb.shape[0] else size[::-1]
+            sx, sy = w / rgb.shape[1], h / rgb.shape[0]
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+            fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
+        out.append((rgb, (fx, fy, cx, cy)))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene-dir", type=Path, required=True)
+    ap.add_argument("--size", help="WxH to resize the queries to (default: as prepared)")
+    ap.add_argument("--refine", nargs="+", choices=REFINE, default=list(REFINE))
+    ap.add_argument("--warmup", type=int, default=2)
+    args = ap.parse_args()
+    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
+    photos = _photos(args.scene_dir, size)
+    rows = {}
+    for refine in args.refine:
+        reloc = Relocalizer(args.scene_dir / "map" / "map.pt", options=RelocalizeOptions(refine=refine))
+        for rgb, intr in photos[: args.warmup]:
+            reloc.localize(rgb, intr)
+        secs = [reloc.localize(rgb, intr).seconds for rgb, intr in photos]
+        rows[refine] = {k: float(np.median([s.get(k, 0.0) for s in secs])) for k in secs[0]}
+        print(f"{refine:9s} " + "  ".join(f"{k} {1000 * v:.0f} ms" for k, v in rows[refine].items()))
+    h, w = photos[0][0].shape[:2]
+    sizes = {"map_head_mb": _megabytes(args.scene_dir / "map" / "map.pt"),
+             "landmarks_mb": _megabytes(args.scene_dir / "landmarks"),
+             "sfm_model_mb": _megabytes(args.scene_dir / "sfm" / "model")}
+    print({k: round(v, 2) for k, v in sizes.items()})
+    name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "")
+    write_report(f"query_speed_{name}", {"scene": scene_of(args.scene_dir), "queries": len(photos),
+                                         "image_size": [w, h], "threads": torch.get_num_threads(),
+                                         "seconds_median": rows, **sizes})
+
+
+if __name__ == "__main__":
+    main()
