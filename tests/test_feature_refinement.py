@@ -231,3 +231,18 @@ def test_sift_extractors_give_unit_descriptors_in_colmap_pixels(extractor: str):
     assert np.allclose(np.linalg.norm(feats.descriptor, axis=1), 1.0, atol=1e-3)
     assert np.all(feats.descriptor >= 0)
     assert np.all((feats.uv >= 0) & (feats.uv <= [160, 120]))
+
+
+def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthetic_query, monkeypatch):
+    landmarks, feats = scene()
+    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
+             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+    (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
+    for factor in (2.0, 0.5):
+        est = reloc.localize(photo(), (fx * factor, fy * factor, cx, cy))
+        assert not est.success and "focal length" in est.rejected, (factor, est.rejected)
+        assert np.isnan(est.R).all()
+    assert reloc.localize(photo(), (fx * 1.1, fy * 1.1, cx, cy)).rejected == ""  # within the 25 % tolerance

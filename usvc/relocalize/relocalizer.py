@@ -35,11 +35,12 @@ from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
     FeatureResult,
+    global_matches,
     landmark_descriptors,
     refine_by_features,
 )
 from usvc.relocalize.pnp import PnPResult, estimate_focal, reprojection_inliers, solve_pnp
-from usvc.relocalize.query_features import extract_sift
+from usvc.relocalize.query_features import QueryFeatures, extract_sift
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
@@ -49,7 +50,11 @@ MIN_IMAGE_SIDE = 32
 MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
 
 Intrinsics = float | Sequence[float] | np.ndarray | Camera
-CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
+CAMERA_FOV = "crop"
+# The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
+# still explains this fraction of its inliers (a shallow view: distance trades for focal length).
+FOCAL_OBSERVABLE_FRACTION = 0.8
+FOCAL_UNOBSERVABLE = "unobservable"  # a distorted query is undistorted as prepare undistorts mapping images
 
 
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
@@ -267,20 +272,23 @@ class Relocalizer:
             out = self.regressor(normalise(gray01).to(self.device))[0].float()
         return out.permute(1, 2, 0).double().cpu().numpy()
 
-    def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float) -> str:
+    def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float,
+                            tolerance: float | None = None) -> str:
         """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
-        imply another one. A wrong focal length can still explain most cells with a wrong pose
-        (a shallow view trades focal length for distance), so confidence alone cannot catch it."""
+        imply another one (beyond `tolerance`, default focal_tolerance). A wrong focal length can
+        still explain most cells with a wrong pose (a shallow view trades focal length for
+        distance), so confidence alone cannot catch it."""
+        tolerance = self.options.focal_tolerance if tolerance is None else tolerance
         estimate = estimate_focal(pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
                                   self.seed)
         if estimate is None:
             return ""  # no opinion: nothing to hold against the given focal length
         given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
         ratio = estimate.params[0] / given
-        if abs(np.log(ratio)) <= np.log1p(self.options.focal_tolerance):
+        if abs(np.log(ratio)) <= np.log1p(tolerance):
             return ""
         return (f"the image implies a focal length {ratio:.2f}x the given one "
-                f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")
+                f"(tolerance {tolerance:g}); check the intrinsics")
 
     def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None, *,
                  channels: str = "rgb") -> PoseEstimate:
@@ -351,6 +359,12 @@ class Relocalizer:
                 full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
                 given = full_camera
             feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None)
+            if feature_rejected == FOCAL_UNOBSERVABLE:
+                # The features cannot tell: the map's coordinates decide, at a wider tolerance since
+                # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails).
+                wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
+                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide) \
+                    if result.success else ""
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
@@ -396,12 +410,34 @@ class Relocalizer:
                                    self.seed)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
             return found, ""
-        estimate = estimate_focal(found.match_uv, found.match_xyz, camera.width, camera.height, opts.max_error_px,
-                                  self.seed)
+        return found, self._feature_focal_verdict(feats, camera, opts)
+
+    def _feature_focal_verdict(self, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions) -> str:
+        """Why the photo's features contradict the given focal length ("" when they do not), or
+        FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on the
+        matches to every landmark, which do not depend on the given intrinsics (guided matches
+        were picked by a projection with them). A view of a shallow scene explains its matches
+        with a focal length (1 + focal_tolerance)x off about as well (the pose moves along the
+        optical axis instead): then the features cannot tell, and the map's dense coordinates
+        decide as they do without landmarks."""
+        assert self.landmarks is not None
+        tol = self.options.focal_tolerance
+        li, ki = global_matches(self._landmark_desc, feats, opts.ratio)
+        uv, xyz = feats.uv[ki], self.landmarks.xyz[li]
+        estimate = estimate_focal(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
         if estimate is None:
-            return found, ""
-        ratio = estimate.params[0] / float(np.sqrt(camera.focal[0] * camera.focal[1]))
-        if abs(np.log(ratio)) <= np.log1p(self.options.focal_tolerance):
-            return found, ""
-        return found, (f"the matched features imply a focal length {ratio:.2f}x the given one "
-                       f"(tolerance {self.options.focal_tolerance:g}); check the intrinsics")
+            return FOCAL_UNOBSERVABLE
+        f, cx, cy = estimate.params
+        support = []
+        for scale in (1.0, 1.0 / (1.0 + tol), 1.0 + tol):
+            other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
+            res = solve_pnp(uv, xyz, other, max_error_px=opts.max_error_px, seed=self.seed,
+                            min_inliers=opts.min_inliers, backend="pycolmap")
+            support.append(res.num_inliers if res.success else 0)
+        if support[0] < opts.min_inliers or max(support[1:]) >= FOCAL_OBSERVABLE_FRACTION * support[0]:
+            return FOCAL_UNOBSERVABLE
+        ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
+        if abs(np.log(ratio)) <= np.log1p(tol):
+            return ""
+        return (f"the matched features imply a focal length {ratio:.2f}x the given one "
+                f"(tolerance {tol:g}); check the intrinsics")
