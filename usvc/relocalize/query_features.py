@@ -48,7 +48,7 @@ def _opencv_sift(max_features: int) -> cv2.SIFT:
     return cv2.SIFT_create(nfeatures=max_features)
 
 
-def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "opencv") -> QueryFeatures:
+def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "colmap") -> QueryFeatures:
     """SIFT keypoints and unit L1-root descriptors of a uint8 grey image (at most `max_features`)."""
     image = np.ascontiguousarray(gray_u8)
     if extractor == "colmap":
