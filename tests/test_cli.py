@@ -340,3 +340,18 @@ def test_batch_errors_before_the_map_loads(files: dict[str, Path], batch: dict[s
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert lines[0].startswith("usvc localize: error: ") and cause in lines[0], lines[0]
     assert proc.stdout == "" and not (tmp_path / "out").exists()
+
+
+def test_localize_landmarks_flags(files: dict[str, Path], tmp_path: Path) -> None:
+    base = ("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--focal", "130")
+    missing = usvc(*base, "--landmarks", tmp_path / "nowhere.h5", files["photo"])
+    assert missing.returncode == 1 and "landmarks not found" in missing.stderr
+    assert len(missing.stderr.strip().splitlines()) == 1 and "Traceback" not in missing.stderr
+    (tmp_path / "junk.h5").write_bytes(b"not hdf5")
+    junk = usvc(*base, "--landmarks", tmp_path / "junk.h5", files["photo"])
+    assert junk.returncode == 1 and "junk.h5" in junk.stderr and "Traceback" not in junk.stderr
+    plain = usvc(*base, "--refine", "none", files["photo"])  # no landmarks wanted: no note either
+    assert plain.returncode == 0 and plain.stderr == ""
+    assert json.loads(plain.stdout)["success"] in (True, False)
+    bad = usvc(*base, "--refine", "sometimes", files["photo"])
+    assert bad.returncode == 2 and "--refine" in bad.stderr
