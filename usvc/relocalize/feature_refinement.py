@@ -27,6 +27,8 @@ from usvc.relocalize.query_features import QueryFeatures
 log = logging.getLogger(__name__)
 
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
+_PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
+_DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product
 
 
 @dataclass(frozen=True)
@@ -99,29 +101,40 @@ def _one_to_one(rows: np.ndarray, cols: np.ndarray, dist: np.ndarray) -> tuple[n
 
 def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures, radius: float,
                    ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """(landmark rows, keypoint rows) matched within `radius` px of each landmark's projection."""
+    """(landmark rows, keypoint rows) matched within `radius` px of each landmark's projection.
+
+    Only the (landmark, keypoint) pairs within the radius are compared: a kd-tree lists them, their
+    descriptor distances are computed pair by pair, and each landmark's nearest and second nearest
+    keypoint come from a segmented maximum over its pairs (no landmarks x keypoints matrix)."""
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(lm_uv) == 0 or len(feats) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    rows, cols, dists = [], [], []
-    tree = cKDTree(feats.uv)
-    near = tree.query_ball_point(lm_uv, r=radius)
-    has = np.flatnonzero(np.fromiter((len(n) > 0 for n in near), bool, len(near)))
-    for start in range(0, len(has), _CHUNK):
-        block = has[start:start + _CHUNK]
-        sim = lm_desc[block] @ feats.descriptor.T
-        dist = np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0))
-        counts = [len(near[j]) for j in block]
-        inside = np.zeros(dist.shape, dtype=bool)
-        inside[np.repeat(np.arange(len(block)), counts), np.concatenate([near[j] for j in block])] = True
-        dist[~inside] = np.inf
-        best, d1, d2 = _best_two(dist)
-        ok = np.isfinite(d1) & (d1 < ratio * d2)
-        rows.append(block[ok])
-        cols.append(best[ok])
-        dists.append(d1[ok])
-    if not rows:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return _one_to_one(np.concatenate(rows), np.concatenate(cols), np.concatenate(dists))
+        return empty
+    pairs = cKDTree(lm_uv).sparse_distance_matrix(cKDTree(feats.uv), radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return empty
+    order = np.lexsort((pairs["j"], pairs["i"]))  # by landmark, then keypoint: the same order every run
+    lm, kp = pairs["i"][order].astype(np.int64), pairs["j"][order].astype(np.int64)
+    rows_with, counts = np.unique(lm, return_counts=True)
+    if len(rows_with) * len(feats) <= _DENSE_SIMILARITY:  # one product, then a gather: fastest
+        sim = (lm_desc[rows_with] @ feats.descriptor.T)[np.repeat(np.arange(len(rows_with)), counts), kp]
+    else:
+        sim = np.empty(len(kp), np.float32)
+        for a in range(0, len(kp), _PAIRS):  # bounded memory: _PAIRS x 128 floats per side
+            b = min(a + _PAIRS, len(kp))
+            sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.descriptor[kp[a:b]])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    best = np.maximum.reduceat(sim, starts)
+    is_best = sim == np.repeat(best, counts)
+    # the first pair of each landmark that reaches its best similarity
+    first = np.flatnonzero(is_best)
+    first = first[np.concatenate([[True], lm[first][1:] != lm[first][:-1]])]
+    masked = sim.copy()
+    masked[first] = -np.inf
+    second = np.maximum.reduceat(masked, starts)  # -inf for a landmark with one candidate
+    d1 = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+    d2 = np.where(np.isfinite(second), np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0)), np.inf)
+    ok = d1 < ratio * d2
+    return _one_to_one(rows_with[ok], kp[first][ok], d1[ok])
 
 
 def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float) -> tuple[np.ndarray, np.ndarray]:

@@ -186,14 +186,22 @@ def _solve_pycolmap(
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), np.asarray(res["inlier_mask"], bool)
 
 
-def estimate_focal(
-    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
-) -> Camera | None:
-    """The focal length of an uncalibrated photo, estimated with its pose (pycolmap's P4Pf
-    LO-RANSAC, then refinement of pose and focal); principal point at the image centre.
+@dataclass
+class FocalPose:
+    """A focal length estimated with the pose (P4Pf): the camera, the pose and its inliers."""
 
-    Returns a SIMPLE_PINHOLE camera, or None when no pose explains enough correspondences.
-    """
+    camera: Camera
+    R: np.ndarray
+    t: np.ndarray
+    inlier_mask: np.ndarray
+
+
+def estimate_focal_pose(
+    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
+) -> FocalPose | None:
+    """The focal length of an uncalibrated photo with its pose (pycolmap's P4Pf LO-RANSAC, then
+    refinement of pose and focal); principal point at the image centre. None when no pose
+    explains enough correspondences (or fewer than 8 finite ones are given)."""
     p2 = np.asarray(points2d, dtype=np.float64).reshape(-1, 2)
     p3 = np.asarray(points3d, dtype=np.float64).reshape(-1, 3)
     finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
@@ -211,7 +219,36 @@ def estimate_focal(
     f = float(cam.params[0])  # refined in place
     if res is None or not (np.isfinite(f) and f > 0):
         return None
-    return Camera("SIMPLE_PINHOLE", width, height, (f, width / 2, height / 2))
+    mask = np.zeros(len(p2), dtype=bool)
+    mask[np.flatnonzero(finite)] = np.asarray(res["inlier_mask"], bool).reshape(-1)
+    pose = res["cam_from_world"]
+    return FocalPose(Camera("SIMPLE_PINHOLE", width, height, (f, width / 2, height / 2)), pose.rotation.matrix(),
+                     np.asarray(pose.translation, dtype=np.float64), mask)
+
+
+def estimate_focal(
+    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
+) -> Camera | None:
+    """The focal length of an uncalibrated photo, estimated with its pose (`estimate_focal_pose`):
+    a SIMPLE_PINHOLE camera, or None when no pose explains enough correspondences."""
+    found = estimate_focal_pose(points2d, points3d, width, height, max_error_px, seed)
+    return None if found is None else found.camera
+
+
+def support_at(camera: Camera, points2d: np.ndarray, points3d: np.ndarray, R: np.ndarray, t: np.ndarray,
+               mask: np.ndarray, max_error_px: float) -> int:
+    """Inliers of the pose refined (non-linear, pycolmap) from (R, t) on the `mask` correspondences
+    with `camera` held fixed: how well this camera explains what another one explained."""
+    p2 = np.ascontiguousarray(np.asarray(points2d, dtype=np.float64).reshape(-1, 2))
+    p3 = np.ascontiguousarray(np.asarray(points3d, dtype=np.float64).reshape(-1, 3))
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    res = pycolmap.refine_absolute_pose(pycolmap.Rigid3d(pycolmap.Rotation3d(R), t), p2, p3,
+                                        np.asarray(mask, bool), cam, pycolmap.AbsolutePoseRefinementOptions())
+    if res is None:
+        return 0
+    pose = res["cam_from_world"]
+    return int(reprojection_inliers(camera, p2, p3, pose.rotation.matrix(),
+                                    np.asarray(pose.translation, dtype=np.float64), max_error_px).sum())
 
 
 def solve_pnp(

@@ -39,7 +39,14 @@ from usvc.relocalize.feature_refinement import (
     landmark_descriptors,
     refine_by_features,
 )
-from usvc.relocalize.pnp import PnPResult, estimate_focal, reprojection_inliers, solve_pnp
+from usvc.relocalize.pnp import (
+    PnPResult,
+    estimate_focal,
+    estimate_focal_pose,
+    reprojection_inliers,
+    solve_pnp,
+    support_at,
+)
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
@@ -424,18 +431,16 @@ class Relocalizer:
         tol = self.options.focal_tolerance
         li, ki = global_matches(self._landmark_desc, feats, opts.ratio)
         uv, xyz = feats.uv[ki], self.landmarks.xyz[li]
-        estimate = estimate_focal(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
-        if estimate is None:
+        found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+        if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
             return FOCAL_UNOBSERVABLE
-        f, cx, cy = estimate.params
-        support = []
-        for scale in (1.0, 1.0 / (1.0 + tol), 1.0 + tol):
+        f, cx, cy = found.camera.params
+        inliers = int(found.inlier_mask.sum())
+        for scale in (1.0 / (1.0 + tol), 1.0 + tol):  # can a focal length this far off explain the same inliers?
             other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
-            res = solve_pnp(uv, xyz, other, max_error_px=opts.max_error_px, seed=self.seed,
-                            min_inliers=opts.min_inliers, backend="pycolmap")
-            support.append(res.num_inliers if res.success else 0)
-        if support[0] < opts.min_inliers or max(support[1:]) >= FOCAL_OBSERVABLE_FRACTION * support[0]:
-            return FOCAL_UNOBSERVABLE
+            if support_at(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px) \
+                    >= FOCAL_OBSERVABLE_FRACTION * inliers:
+                return FOCAL_UNOBSERVABLE
         ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
         if abs(np.log(ratio)) <= np.log1p(tol):
             return ""
