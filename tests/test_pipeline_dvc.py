@@ -77,7 +77,8 @@ def test_repro_produces_every_artifact(repo):
                 "data/mini/sfm/points.ply", "data/mini/sfm/model/points3D.bin",
                 "data/mini/keypoints/keypoints.h5", "data/mini/keypoints/keypoints.ply",
                 "data/mini/gaussians/NOT_COMPUTED.txt", "data/mini/render/NOT_COMPUTED.txt",
-                "data/mini/buffer/buffer.h5", "data/mini/map/map.pt", "data/mini/relocalize/poses.txt",
+                "data/mini/buffer/buffer.h5", "data/mini/map/map.pt", "data/mini/landmarks/landmarks.h5",
+                "data/mini/relocalize/poses.txt",
                 "data/mini/relocalize/queries.h5", "results/mini/metrics.json",
                 "results/mini/plots/trajectory.png", "results/mini/plots/trans_cdf.csv"]:
         assert (repo / rel).exists(), rel
@@ -120,6 +121,23 @@ def test_relocalize_change_reruns_only_relocalize_and_metrics(repo):
     for stage in ("buffer@mini", "train@mini", "sfm@mini"):
         assert f"Running stage '{stage}'" not in out
     assert _digest(repo / "data/mini/map/map.pt") == map_digest
+    assert _status(repo) == set()
+
+
+def test_landmarks_change_reruns_landmarks_relocalize_metrics_only(repo):
+    conf = repo / "conf/landmarks/default.yaml"
+    map_digest = _digest(repo / "data/mini/map/map.pt")
+    conf.write_text(conf.read_text().replace("descriptor: mean", "descriptor: medoid"))
+    assert _status(repo) == {"landmarks@mini"}
+    out = _run([sys.executable, "-m", "dvc", "repro"], repo).stdout
+    for stage in ("landmarks@mini", "relocalize@mini", "metrics@mini"):
+        assert f"Running stage '{stage}'" in out
+    for stage in ("sfm@mini", "keypoints@mini", "buffer@mini", "train@mini"):
+        assert f"Running stage '{stage}'" not in out
+    assert _digest(repo / "data/mini/map/map.pt") == map_digest
+    assert json.loads((repo / "results/mini/landmarks.json").read_text())["landmarks"] > 500
+    records = json.loads((repo / "data/mini/relocalize/queries.json").read_text())
+    assert all(r["refinement"]["method"] == "features" for r in records.values() if r["success"])
     assert _status(repo) == set()
 
 
