@@ -52,5 +52,9 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
             "ms_refine": float(np.mean([r.seconds.get("refine", 0.0) for r in results]) * 1000),
             "median_inliers": float(np.median([r.inliers for r in results])),
             "query_seconds": {f.name: r.seconds for f, r in zip(frames, results)},
+            # which evidence gave the answers: guided / global (features), keypoints, dense (the learned pose)
+            "answer_paths": {p: sum(r.refine_path == p for r in refined)
+                             for p in sorted({r.refine_path for r in refined})},
+            "median_feature_inliers": float(np.median([r.feature_inliers for r in refined])) if refined else 0.0,
             **refinement_summary([r.refine_kept for r in refined], [r.refine_iterations for r in refined])}
 
