@@ -31,7 +31,7 @@ class RelocalizeOptions:
     features_max_keypoints: int = 4096  # refine=features: SIFT keypoints of the query (at the mapping images' short side)
     features_radii_px: list[float] = field(default_factory=lambda: [96.0, 24.0, 8.0])  # search radius of each guided pass, px at a 480 px short side
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest
-    features_max_error_px: float = 6.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side
+    features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
