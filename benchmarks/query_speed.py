@@ -1,7 +1,8 @@
 """Time real queries end to end (photo in, pose out) with each refinement, on a scene's own map.
 
 For a scene folder after its landmarks and train stages (prepared/, map/, landmarks/), every
-query photo is localized with refine = none, keypoints and features (the default), at the
+query photo is localized with refine = none, keypoints, features (the default) and features with
+OpenCV's SIFT, at the
 photo's own size and, with --size WxH, resized to that size (intrinsics scaled with it; a
 portrait photo gets the size turned). Each figure is the median over the queries after --warmup
 untimed ones, split as the relocalizer reports it (preprocess, network, pnp, refine, total);
@@ -56,14 +57,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene-dir", type=Path, required=True)
     ap.add_argument("--size", help="WxH to resize the queries to (default: as prepared)")
-    ap.add_argument("--refine", nargs="+", choices=REFINE, default=list(REFINE))
+    variants = [*REFINE, "features-opencv"]  # the last: refinement by features with OpenCV's SIFT
+    ap.add_argument("--refine", nargs="+", choices=variants, default=variants)
     ap.add_argument("--warmup", type=int, default=2)
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     photos = _photos(args.scene_dir, size)
     rows = {}
     for refine in args.refine:
-        reloc = Relocalizer(args.scene_dir / "map" / "map.pt", options=RelocalizeOptions(refine=refine))
+        options = RelocalizeOptions(refine="features", features_extractor="opencv") if refine == "features-opencv" \
+            else RelocalizeOptions(refine=refine)
+        reloc = Relocalizer(args.scene_dir / "map" / "map.pt", options=options)
         for rgb, intr in photos[: args.warmup]:
             reloc.localize(rgb, intr)
         secs = [reloc.localize(rgb, intr).seconds for rgb, intr in photos]

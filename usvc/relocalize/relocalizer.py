@@ -61,7 +61,9 @@ CAMERA_FOV = "crop"
 # The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
 # still explains this fraction of its inliers (a shallow view: distance trades for focal length).
 FOCAL_OBSERVABLE_FRACTION = 0.8
-FOCAL_UNOBSERVABLE = "unobservable"  # a distorted query is undistorted as prepare undistorts mapping images
+FOCAL_UNOBSERVABLE = "unobservable"
+# The learned pose "describes" the photo when it is this close to the feature pose.
+AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5  # a distorted query is undistorted as prepare undistorts mapping images
 
 
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
@@ -76,6 +78,15 @@ def feature_options(options: RelocalizeOptions, short_side: int) -> FeatureMatch
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
                                view_margin_deg=options.features_view_margin_deg)
+
+
+def poses_agree(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray, median_depth: float) -> bool:
+    """Whether two world-to-camera poses are the same view up to what a coarse map gets wrong:
+    within AGREE_DEG of rotation and AGREE_DEPTH_FRACTION of the median scene depth apart."""
+    cos = (np.trace(R1 @ R2.T) - 1.0) / 2.0
+    angle = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    gap = float(np.linalg.norm(camera_centers(R1, t1) - camera_centers(R2, t2)))
+    return angle <= AGREE_DEG and gap <= AGREE_DEPTH_FRACTION * median_depth
 
 
 def _nan_R() -> np.ndarray:
@@ -368,10 +379,13 @@ class Relocalizer:
             feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None)
             if feature_rejected == FOCAL_UNOBSERVABLE:
                 # The features cannot tell: the map's coordinates decide, at a wider tolerance since
-                # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails).
+                # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails),
+                # and only where they describe this photo (their pose agrees with the features'; a
+                # photo the map cannot read, e.g. turned sideways, gives them no say).
                 wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
-                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide) \
-                    if result.success else ""
+                agree = result.success and feature.success and \
+                    poses_agree(result.R, result.t, feature.R, feature.t, self.median_depth)
+                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide) if agree else ""
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
