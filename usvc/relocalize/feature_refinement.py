@@ -112,11 +112,9 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     pairs = cKDTree(lm_uv).sparse_distance_matrix(cKDTree(feats.uv), radius, output_type="ndarray")
     if len(pairs) == 0:
         return empty
-    order = np.argsort(pairs["i"], kind="stable")  # grouped by landmark; the tree's own order within
+    order = np.lexsort((pairs["j"], pairs["i"]))  # by landmark, then keypoint: the same order every run
     lm, kp = pairs["i"][order].astype(np.int64), pairs["j"][order].astype(np.int64)
-    counts = np.bincount(lm, minlength=len(lm_uv))
-    rows_with = np.flatnonzero(counts)
-    counts = counts[rows_with]
+    rows_with, counts = np.unique(lm, return_counts=True)
     if len(rows_with) * len(feats) <= _DENSE_SIMILARITY:  # one product, then a gather: fastest
         sim = (lm_desc[rows_with] @ feats.descriptor.T)[np.repeat(np.arange(len(rows_with)), counts), kp]
     else:
