@@ -10,6 +10,7 @@ from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
 from usvc.core.scene_io import read_scene_h5
 from usvc.landmarks.landmarks_file import LANDMARKS_FILE
+from usvc.model.head import read_map_header
 from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
@@ -27,12 +28,12 @@ def main(cfg: DictConfig) -> None:
     paths = scene_paths(cfg)
     frames = read_scene_h5(paths.prepared).split("test")
     options = group_options(cfg, "relocalize")
-    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options, seed=cfg.seed,
-                              landmarks=paths.landmarks / LANDMARKS_FILE if options.refine == "features" else None)
-    mapped = relocalizer.metadata.get("scene")
+    mapped = read_map_header(paths.map / "map.pt")["metadata"].get("scene")
     if cfg.scene.name != mapped:
         raise UsvcError(f"{paths.map / 'map.pt'} is a map of scene {mapped!r}, not of {cfg.scene.name!r}: "
                         "rerun the train stage for this scene")
+    relocalizer = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights, options, seed=cfg.seed,
+                              landmarks=paths.landmarks / LANDMARKS_FILE if options.refine == "features" else None)
     results = relocalize_frames(relocalizer, frames)
     out, metrics_path = stage_outputs(cfg, "relocalize")
     with atomic_dir(out) as tmp:
