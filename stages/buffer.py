@@ -49,7 +49,8 @@ def main(cfg: DictConfig) -> None:
     short_side = working_short_side(min(frames[0].camera.width, frames[0].camera.height), b.short_side,
                                     cfg.model.max_short_side)
     buf = fill_buffer(frames, encoder, group_options(cfg, "buffer"), short_side, seed=cfg.seed, keypoints=keypoints,
-                      depths=depths if any(d is not None for d in depths) else None)
+                      depths=depths if any(d is not None for d in depths) else None,
+                      mapping_images=len(frames) - n_rendered)
     # Held-out mapping images, unaugmented: training measures its held-out fit on them (train.validate_every).
     heldout = fill_heldout(holdout, encoder, group_options(cfg, "buffer"), short_side, seed=cfg.seed) if holdout else None
     out, metrics_path = stage_outputs(cfg, "buffer")

@@ -42,7 +42,7 @@ def main(cfg: DictConfig) -> None:
     metadata = {"scene": cfg.scene.name, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": cfg.model.name, "method": cfg.method,
                 "train": OmegaConf.to_container(cfg.train), "precision": summary["precision"], "seed": cfg.seed,
-                "final_loss": summary["final_loss"]}  # no timings: same training, same bytes
+                "iterations": summary["iterations"], "final_loss": summary["final_loss"]}  # no timings: same training, same bytes
     out, metrics_path = stage_outputs(cfg, "train", artifact="map")
     with atomic_dir(out) as tmp:
         # The kept keypoints travel with the map: query-time refinement projects them (paper 3.2.2).

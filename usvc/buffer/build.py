@@ -141,8 +141,11 @@ def holdout_split(mapping: list[Frame], every: int) -> tuple[list[Frame], list[F
 def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, short_side: int, seed: int = 0,
                 device: str = "cpu",
                 keypoints: SceneKeypoints | None = None,
-                depths: list[np.ndarray | None] | None = None) -> TrainingBuffer:
-    """Repeated passes over the mapping images with fresh augmentation until `opts.size` cells.
+                depths: list[np.ndarray | None] | None = None,
+                mapping_images: int | None = None) -> TrainingBuffer:
+    """Repeated passes over the mapping images with fresh augmentation until the buffer holds
+    `opts.cells_for(mapping_images)` cells (`mapping_images`: the photos the budget counts, by
+    default every frame; rendered views add views, not budget).
 
     With `keypoints`, every view also stores the tuples of the keypoints it sees (`depths`, one per
     frame or None, let points off their tracks count where depth confirms them). Their subsampling
@@ -155,6 +158,7 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
     if depths is not None and len(depths) != len(frames):
         raise UsvcError(f"got {len(depths)} depth maps for {len(frames)} mapping images")
     check(opts, "buffer")
+    opts = replace(opts, size=opts.cells_for(len(frames) if mapping_images is None else mapping_images))
     precision = resolve_precision(opts.precision, device)
     rng = np.random.default_rng(seed)
     kp_rng = np.random.default_rng([seed, 1])

@@ -11,7 +11,10 @@ from usvc.core.precision import PRECISIONS
 
 @dataclass
 class BufferOptions:
-    size: int = 262144  # cells (feature vectors with their pixel and view) in the buffer
+    size: int = 0  # cells (feature vectors with their pixel and view); 0 = sized by the scene (cells_for)
+    cells_per_image: int = 4096  # size=0: cells per mapping photo ...
+    min_size: int = 262144  # ... but at least this many (small scenes) ...
+    max_size: int = 1048576  # ... and at most this many (about 1 GiB of buffer on disk and in memory)
     samples_per_image: int = 1024  # cells drawn from each augmented view
     short_side: int = 0  # working short side the map is trained and queried at; 0 = the prepared images', at most model.max_short_side
     scale_min: float = 0.6667  # random rescaling of each view, lower bound
@@ -28,11 +31,18 @@ class BufferOptions:
     precision: str = "auto"  # the encoder's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
-        out = positive(self, "size", "samples_per_image", "scale_min", "scale_max", "brightness_min",
+        out = positive(self, "cells_per_image", "min_size", "max_size", "samples_per_image", "scale_min", "scale_max", "brightness_min",
                        "contrast_min", "depth_visibility_tol")
         out += one_of(self, "precision", PRECISIONS)
-        out += non_negative(self, "short_side", "keypoint_obs_per_view", "holdout_every", "max_rotation_deg")
-        for low, high in (("scale_min", "scale_max"), ("brightness_min", "brightness_max"),
+        out += non_negative(self, "size", "short_side", "keypoint_obs_per_view", "holdout_every", "max_rotation_deg")
+        for low, high in (("min_size", "max_size"), ("scale_min", "scale_max"), ("brightness_min", "brightness_max"),
                           ("contrast_min", "contrast_max")):
             out += ordered(self, low, high)
         return out
+
+    def cells_for(self, mapping_images: int) -> int:
+        """Cells of the buffer for a scene of `mapping_images` photos: `size` when set, else a budget
+        that grows with the scene as ACE's does (`cells_per_image` each, within [min_size, max_size])."""
+        if self.size:
+            return self.size
+        return min(self.max_size, max(self.min_size, self.cells_per_image * mapping_images))

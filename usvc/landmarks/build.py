@@ -7,6 +7,7 @@ import logging
 import numpy as np
 
 from usvc.core.errors import UsvcError
+from usvc.core.geometry import camera_centers
 from usvc.landmarks.landmarks import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.options import LandmarksOptions
 from usvc.sfm.tracks import Tracks
@@ -37,7 +38,7 @@ def _track_descriptors(tracks: Tracks, keep: np.ndarray, how: str) -> np.ndarray
 
 def _view_cones(tracks: Tracks, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean unit direction from each kept point to its observing cameras, and the widest angle."""
-    centers = -np.einsum("mji,mj->mi", tracks.R, tracks.t)  # C = -R^T t
+    centers = camera_centers(tracks.R, tracks.t)
     point = tracks.point_of_obs()
     rays = centers[tracks.obs_image] - tracks.xyz[point]
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)

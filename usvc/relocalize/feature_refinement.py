@@ -19,8 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
-from usvc.landmarks.landmarks import Landmarks, unit_descriptors
+from usvc.landmarks.landmarks import Landmarks
 from usvc.relocalize.pnp import project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 
@@ -69,7 +70,7 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
     uv, depth = project_points(camera, landmarks.xyz, R, t)
     ok = (depth > 0) & np.all(np.isfinite(uv), axis=1)
     ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    center = -R.T @ t
+    center = camera_centers(R, t)
     ray = center[None] - landmarks.xyz
     ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
     angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ray, landmarks.view_dir), -1.0, 1.0)))
@@ -78,16 +79,22 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
     return idx, uv[idx]
 
 
-def _best_two(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row: index of the smallest entry, the smallest and the second smallest (inf if none)."""
-    if dist.shape[1] == 1:
-        return np.zeros(len(dist), np.int64), dist[:, 0], np.full(len(dist), np.inf)
-    part = np.argpartition(dist, 1, axis=1)[:, :2]
-    rows = np.arange(len(dist))
-    a, b = dist[rows, part[:, 0]], dist[rows, part[:, 1]]
-    swap = b < a
-    first = np.where(swap, part[:, 1], part[:, 0])
-    return first, np.minimum(a, b), np.maximum(a, b)
+def _best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of a similarity block: the column of the largest entry, the largest and the second
+    largest (-inf when the row has one column). Two passes over the block, no sort."""
+    rows = np.arange(len(sim))
+    first = np.argmax(sim, axis=1)
+    s1 = sim[rows, first]
+    if sim.shape[1] == 1:
+        return first, s1, np.full(len(sim), -np.inf, dtype=sim.dtype)
+    masked = sim.copy()
+    masked[rows, first] = -np.inf
+    return first, s1, masked.max(axis=1)
+
+
+def _distance(sim: np.ndarray) -> np.ndarray:
+    """Euclidean distance of unit descriptors from their dot product (inf for -inf)."""
+    return np.where(np.isfinite(sim), np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0)), np.inf).astype(np.float32)
 
 
 def _one_to_one(rows: np.ndarray, cols: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,9 +119,11 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     pairs = cKDTree(lm_uv).sparse_distance_matrix(cKDTree(feats.uv), radius, output_type="ndarray")
     if len(pairs) == 0:
         return empty
-    order = np.lexsort((pairs["j"], pairs["i"]))  # by landmark, then keypoint: the same order every run
+    key = pairs["i"].astype(np.int64) * len(feats) + pairs["j"]
+    order = np.argsort(key)  # by landmark, then keypoint (unique keys): the same order every run
     lm, kp = pairs["i"][order].astype(np.int64), pairs["j"][order].astype(np.int64)
-    rows_with, counts = np.unique(lm, return_counts=True)
+    starts = np.flatnonzero(np.r_[True, lm[1:] != lm[:-1]])
+    rows_with, counts = lm[starts], np.diff(np.r_[starts, len(lm)])
     if len(rows_with) * len(feats) <= _DENSE_SIMILARITY:  # one product, then a gather: fastest
         sim = (lm_desc[rows_with] @ feats.descriptor.T)[np.repeat(np.arange(len(rows_with)), counts), kp]
     else:
@@ -122,7 +131,6 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
         for a in range(0, len(kp), _PAIRS):  # bounded memory: _PAIRS x 128 floats per side
             b = min(a + _PAIRS, len(kp))
             sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.descriptor[kp[a:b]])
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     best = np.maximum.reduceat(sim, starts)
     is_best = sim == np.repeat(best, counts)
     # the first pair of each landmark that reaches its best similarity
@@ -143,21 +151,20 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float) -> t
     k = len(feats)
     if k == 0 or len(lm_desc) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    best_d = np.full((k, 2), np.inf, dtype=np.float32)
+    best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
     best_i = np.zeros(k, dtype=np.int64)
     lm_best = np.zeros(len(lm_desc), dtype=np.int64)
     for start in range(0, len(lm_desc), _CHUNK):
-        sim = lm_desc[start:start + _CHUNK] @ feats.descriptor.T  # (chunk, K)
-        dist = np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0))
-        lm_best[start:start + len(sim)] = np.argmin(dist, axis=1)
-        first, d1, d2 = _best_two(dist.T)  # per keypoint within this chunk
-        # merge the chunk's two best into the running two best
-        cand = np.stack([best_d[:, 0], best_d[:, 1], d1, d2], axis=1)
-        new_first = d1 < best_d[:, 0]
+        sim = feats.descriptor @ lm_desc[start:start + _CHUNK].T  # (K, chunk): per keypoint along rows
+        lm_best[start:start + sim.shape[1]] = np.argmax(sim, axis=0)
+        first, s1, s2 = _best_two(sim)
+        new_first = s1 > best_s[:, 0]
         best_i = np.where(new_first, first + start, best_i)
+        cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
         cand.sort(axis=1)
-        best_d = cand[:, :2]
-    ok = np.isfinite(best_d[:, 0]) & (best_d[:, 0] < ratio * best_d[:, 1])
+        best_s = cand[:, :1:-1]  # the two largest, largest first
+    d1, d2 = _distance(best_s[:, 0]), _distance(best_s[:, 1])
+    ok = np.isfinite(d1) & (d1 < ratio * d2)
     ok &= lm_best[best_i] == np.arange(k)
     cols = np.flatnonzero(ok)
     return best_i[cols], cols
@@ -216,7 +223,3 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
         out.match_uv, out.match_xyz = feats.uv[ki], landmarks.xyz[idx[li]]
     out.R, out.t = np.asarray(R, np.float64).copy(), np.asarray(t, np.float64).copy()
     return out
-
-
-def landmark_descriptors(landmarks: Landmarks) -> np.ndarray:
-    return unit_descriptors(landmarks.descriptor)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,23 +19,21 @@ import numpy as np
 import torch
 
 from usvc.core.errors import UsvcError
-from usvc.core.exif import read_image_bgr
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
-from usvc.landmarks.landmarks import Landmarks
+from usvc.landmarks.landmarks import Landmarks, unit_descriptors
 from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
 from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
-from usvc.model.preprocess import luma01, normalise, resize_to_short_side
+from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
     FeatureResult,
     global_matches,
-    landmark_descriptors,
     refine_by_features,
 )
 from usvc.relocalize.pnp import (
@@ -48,6 +45,7 @@ from usvc.relocalize.pnp import (
     support_at,
 )
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
@@ -56,7 +54,6 @@ log = logging.getLogger(__name__)
 MIN_IMAGE_SIDE = 32
 MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
 
-Intrinsics = float | Sequence[float] | np.ndarray | Camera
 CAMERA_FOV = "crop"
 # The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
 # still explains this fraction of its inliers (a shallow view: distance trades for focal length).
@@ -160,63 +157,6 @@ class PoseEstimate:
         return out
 
 
-def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Camera:
-    """A focal (principal point at the image centre), (fx, fy, cx, cy), a 3x3 K or a Camera of
-    any supported COLMAP model (with distortion)."""
-    if isinstance(intrinsics, Camera):
-        cam = intrinsics
-        if (cam.width, cam.height) != (width, height):
-            raise UsvcError(f"the camera is {cam.width}x{cam.height} but the image is {width}x{height}")
-        return cam
-    if isinstance(intrinsics, (dict, str, bytes)):
-        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
-                        f"got a {type(intrinsics).__name__}")
-    try:
-        arr = np.asarray(intrinsics, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
-                        f"got {type(intrinsics).__name__} {intrinsics!r:.80}") from None
-    if arr.size == 1:
-        fx = fy = float(arr.reshape(-1)[0])
-        cx, cy = width / 2, height / 2
-    elif arr.shape == (4,):
-        fx, fy, cx, cy = (float(v) for v in arr)
-    elif arr.shape == (3, 3):
-        fx, fy, cx, cy = float(arr[0, 0]), float(arr[1, 1]), float(arr[0, 2]), float(arr[1, 2])
-    else:
-        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy) or a 3x3 K, got shape {arr.shape}")
-    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
-        raise UsvcError(f"intrinsics must be finite with positive focal lengths, got fx={fx}, fy={fy}")
-    if not (0 < cx < width and 0 < cy < height):
-        raise UsvcError(f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image: "
-                        "wrong image size for these intrinsics?")
-    return Camera("PINHOLE", width, height, (fx, fy, cx, cy))
-
-
-def _as_gray(image: np.ndarray | str | Path, channels: str = "rgb") -> np.ndarray:
-    """Path or uint8 RGB/BGR/grey array -> float luma in [0, 1]."""
-    if channels not in ("rgb", "bgr"):
-        raise UsvcError(f"channels={channels!r} must be 'rgb' (PIL, imageio) or 'bgr' (cv2.imread)")
-    if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
-        return luma01(read_image_bgr(image), rgb=False)
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
-        raise UsvcError(f"image must be a uint8 HxW or HxWx3 RGB array, got {arr.dtype} {arr.shape}")
-    return luma01(arr, rgb=channels == "rgb")
-
-
-def _check_device(device: str) -> str:
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise UsvcError(f"device={device!r} is not a torch device (e.g. 'cpu', 'cuda', 'cuda:1')") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UsvcError(f"device={device!r}: CUDA is not available on this machine (use device='cpu')")
-    if dev.type not in ("cpu", "cuda"):
-        raise UsvcError(f"device={device!r}: usvc runs on 'cpu' or 'cuda'")
-    return device
-
-
 class Relocalizer:
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
@@ -227,7 +167,7 @@ class Relocalizer:
         (`landmarks.h5` in the map's folder, else `../landmarks/landmarks.h5` as the pipeline writes it)."""
         if not isinstance(map_path, (str, Path)):
             raise UsvcError(f"map_path must be the path of a map.pt, got {type(map_path).__name__}")
-        device = _check_device(device)
+        device = check_device(device)
         self.options = options or RelocalizeOptions()
         check(self.options, "relocalize")
         self.seed = seed  # RANSAC's seed
@@ -275,7 +215,7 @@ class Relocalizer:
         if why:
             raise UsvcError(f"{path} are not the landmarks of map {self.map_path}: {why}")
         self.landmarks, self.landmarks_path = found, path
-        self._landmark_desc = landmark_descriptors(found)
+        self._landmark_desc = unit_descriptors(found.descriptor)
 
     def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
         """The image at the map's working short side, as its head was trained, and the resize factor."""
@@ -318,7 +258,7 @@ class Relocalizer:
         give it) or BGR (``channels="bgr"``, as ``cv2.imread`` gives it); a path is read with its
         EXIF orientation applied."""
         t0 = time.perf_counter()
-        gray = _as_gray(image, channels)
+        gray = as_gray(image, channels)
         h, w = gray.shape
         if min(h, w) < MIN_IMAGE_SIDE:
             raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")

@@ -15,7 +15,8 @@ BUNDLE_FORMS = ("tanh", "squared")
 
 @dataclass
 class TrainOptions:
-    iterations: int = 6000  # optimiser steps
+    iterations: int = 0  # optimiser steps; 0 = passes over the buffer (steps_for), so training grows with the buffer
+    passes: float = 46.875  # iterations=0: passes x buffer cells / batch_size steps (6,000 on the smallest buffer)
     batch_size: int = 2048  # buffer cells per step
     optimizer: str = "adamw"  # adamw | adabelief
     lr: float = 5e-3  # peak learning rate of the one-cycle schedule, or the constant one
@@ -39,12 +40,18 @@ class TrainOptions:
     def problems(self) -> list[str]:
         out = one_of(self, "optimizer", OPTIMIZERS) + one_of(self, "schedule", SCHEDULES)
         out += one_of(self, "bundle_loss", BUNDLE_FORMS) + one_of(self, "precision", PRECISIONS)
-        out += non_negative(self, "validate_every")
-        out += positive(self, "iterations", "batch_size", "lr", "reproj_weight", "bundle_groups_per_batch",
+        out += non_negative(self, "validate_every", "iterations")
+        out += positive(self, "passes", "batch_size", "lr", "reproj_weight", "bundle_groups_per_batch",
                         "bundle_obs_per_group")
         out += in_range(self, "warmup_fraction", 0.0, 1.0, high_open=True)
+        if self.passes == float("inf"):
+            out.append("passes=inf must be finite")
         if self.bundle_weight < 0:
             out.append(f"bundle_weight={self.bundle_weight!r} must be >= 0")
         if not 0 < self.depth_min_rel < self.invalid_depth_rel < self.depth_max_rel:
             out.append("need 0 < depth_min_rel < invalid_depth_rel < depth_max_rel")
         return out
+
+    def steps_for(self, cells: int) -> int:
+        """Optimiser steps on a buffer of `cells`: `iterations` when set, else `passes` over it."""
+        return self.iterations or max(1, round(self.passes * cells / self.batch_size))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -90,6 +91,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
     if not (np.isfinite(median_depth) and median_depth > 0):
         raise UsvcError(f"training needs a positive median scene depth, got {median_depth}")
     n = len(buf.features)
+    opts = replace(opts, iterations=opts.steps_for(n))
     if n < opts.batch_size:
         raise UsvcError(f"the buffer has {n} cells, fewer than one batch ({opts.batch_size}); "
                         "raise buffer.size or lower train.batch_size")
