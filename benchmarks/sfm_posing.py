@@ -1,7 +1,9 @@
 """How close are SfM poses of an unposed capture (``scene.format=images``) to the capture's given poses?
 
-Both arguments are prepared scene folders of the same photos (same names, same split): one
-imported with its poses, one posed by SfM in the prepare stage. A similarity (Umeyama, on the
+Both arguments are prepared scene folders of the same photos (same split): one imported with its
+poses, one posed by SfM in the prepare stage. Photos are matched by name, or, when the two scenes
+name them differently (``images/0000.jpg`` against ``0000.jpg``), by file name; a file name that
+two photos of one scene share is refused as ambiguous. A similarity (Umeyama, on the
 mapping photos' camera centres) brings the SfM frame into the given one; the report gives
 rotation and centre errors per split, centre errors also as a fraction of the scene extent
 (median distance of the centres from their mean). With ``--relocalized``, query poses that the
@@ -18,7 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
+from dataclasses import replace
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -26,16 +29,50 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _report import scene_of, write_report  # noqa: E402
 
+from usvc.core.errors import UsvcError  # noqa: E402
 from usvc.core.pose_errors import (  # noqa: E402
     read_poses_txt,
     rotation_error_deg,
     summarize,
     translation_error,
 )
+from usvc.core.scene import Frame  # noqa: E402
 from usvc.core.scene_io import read_scene_h5  # noqa: E402
 from usvc.metrics.alignment import align_and_compare  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402
+
+
+def _file_name(name: str) -> str:
+    return PurePosixPath(name.replace("\\", "/")).name
+
+
+def _file_names(names: list[str], which: str, shared_with: set[str]) -> dict[str, str]:
+    """{file name: name}; a file name of two photos is an error when the other scene has it too."""
+    out: dict[str, str] = {}
+    for name in sorted(names):
+        base = _file_name(name)
+        if base in out and base in shared_with:
+            raise UsvcError(f"the {which} scene has two photos named {base!r} ({out[base]} and {name}): "
+                            "cannot match the two scenes' photos by file name")
+        out.setdefault(base, name)
+    return out
+
+
+def match_photos(given: list[Frame], sfm: list[Frame]) -> tuple[dict[str, str], str]:
+    """({SfM-posed photo's name: given photo's name}, "name" or "file name") for the photos both
+    scenes hold: by name when every SfM-posed photo's name is a given one, else by file name."""
+    given_names, sfm_names = [f.name for f in given], [f.name for f in sfm]
+    if set(sfm_names) <= set(given_names):
+        return {n: n for n in sfm_names}, "name"
+    given_bases, sfm_bases = {_file_name(n) for n in given_names}, {_file_name(n) for n in sfm_names}
+    by_given = _file_names(given_names, "given", sfm_bases)
+    by_sfm = _file_names(sfm_names, "SfM-posed", given_bases)
+    names = {by_sfm[b]: by_given[b] for b in by_sfm if b in by_given}
+    if not names:
+        example = f" (e.g. given {given_names[0]!r}, SfM-posed {sfm_names[0]!r})" if given_names and sfm_names else ""
+        raise UsvcError(f"the two scenes share no photo by name or file name{example}: are they of the same capture?")
+    return names, "file name"
 
 
 def _summary(rot: np.ndarray, centre: np.ndarray, extent: float) -> dict:
@@ -57,11 +94,18 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="write the JSON here too")
     args = parser.parse_args()
     given, sfm = read_scene_h5(args.given), read_scene_h5(args.sfm)
+    try:
+        names, matched_by = match_photos(given.frames, sfm.frames)
+    except UsvcError as e:
+        parser.exit(2, f"error: {e}\n")
+    posed_by_sfm = len(sfm.frames)
+    sfm = replace(sfm, frames=[replace(f, name=names[f.name]) for f in sfm.frames if f.name in names])
     mapping = {f.name for f in sfm.frames if f.split == "train"}
     errors = align_and_compare(sfm.frames, given.frames, fit_on=mapping)
     is_map = np.array([n in mapping for n in errors.names])
     report = {"given": str(args.given), "sfm": str(args.sfm), "photos": len(given.frames),
-              "posed_by_sfm": len(sfm.frames), "scale_given_per_sfm": errors.scale, "extent": errors.extent,
+              "posed_by_sfm": posed_by_sfm, "matched_by": matched_by, "shared": len(sfm.frames),
+              "scale_given_per_sfm": errors.scale, "extent": errors.extent,
               "mapping": _summary(errors.rotation_deg[is_map], errors.center_error[is_map], errors.extent),
               "query": _summary(errors.rotation_deg[~is_map], errors.center_error[~is_map], errors.extent)}
     if args.relocalized:
@@ -71,7 +115,7 @@ def main() -> None:
         truth = {f.name: f for f in given.split("test")}
         runs = []
         for path in args.relocalized:
-            poses = read_poses_txt(path)
+            poses = {names.get(n, n): pose for n, pose in read_poses_txt(path).items()}
             rot, tr = [], []
             for name, f in truth.items():
                 if name not in poses:

@@ -321,14 +321,14 @@ def test_progress_bar_goes_to_a_terminal_stderr_only(files: dict[str, Path], bat
     (["--focal", "0", "{photo}"], "--focal for"),
     (["--focal", "130", "{empty}"], "has no images"),
     (["--focal", "130", "{photo}", "{missing_photo}"], "image not found"),
-    (["--focal", "130", "{photo}", "{garbage}", "--out-dir", "{out}"], "cannot decode image"),
+    (["--focal", "130", "{garbage}", "{garbage}"], "none of the 2 photos can be read"),
     (["--focal", "130", "--format", "poses", "{photo}"], "--format needs --out-dir"),
     (["--focal", "130", "--out-dir", "{out}", "--format", "jsonl,ply", "{photo}"], "unknown format 'ply'"),
     (["--focal", "130", "--out-dir", "{photo}", "{photo}"], "is not a folder"),
     (["--focal", "130", "--out-dir", "{out}", "--format", "poses", "{photo}", "{photo}"], "given twice"),
     ([], "no photos given"),
 ], ids=["camera-model", "camera-too-few", "camera-too-many", "camera-focal", "camera-pp", "focal-zero",
-        "empty-folder", "missing-in-batch", "garbage-in-batch", "format-no-dir", "format-unknown", "out-is-file",
+        "empty-folder", "missing-in-batch", "all-garbage", "format-no-dir", "format-unknown", "out-is-file",
         "twice", "no-photos"])
 def test_batch_errors_before_the_map_loads(files: dict[str, Path], batch: dict[str, Path], tmp_path: Path,
                                            args: list[str], cause: str) -> None:

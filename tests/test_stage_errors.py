@@ -114,6 +114,9 @@ def test_ctrl_c_prints_one_line_and_leaves_nothing(tmp_path):
         [sys.executable, "-m", "stages.generate", "scene=mini", f"scene.path={raw}",
          f"results_dir={tmp_path / 'results'}", f"hydra.run.dir={tmp_path / 'log'}"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        # a runner started in the background (nohup, `&`) ignores SIGINT and its children inherit
+        # that: give the stage the default disposition, so this tests the stage, not the runner
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.time() + 120
     while not list(raw.parent.glob(".mini.tmp-*")) and time.time() < deadline and proc.poll() is None:

@@ -16,7 +16,7 @@ from usvc.core.errors import SceneError, UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
-from usvc.relocalize.options import REFINE
+from usvc.relocalize.options import MAX_ERROR_PX, REFERENCE_SHORT_SIDE, REFINE
 
 if TYPE_CHECKING:
     from usvc.core.scene import Camera
@@ -55,12 +55,18 @@ def _map(args: argparse.Namespace) -> int:
     from usvc.prepare.new_scene import NewSceneOptions, add_scene, find_checkout, repro
 
     checkout = find_checkout(Path.cwd())
-    opts = NewSceneOptions(args.name, args.format, args.split_n, args.working_width, args.metric_scale)
-    added = add_scene(Path(args.source), checkout, opts)
+    opts = NewSceneOptions(args.name, args.format, args.split_n, args.working_width, args.metric_scale,
+                           exif_focal=not args.no_exif)
+    added = add_scene(Path(args.source), checkout, opts)  # all or nothing, Ctrl-C included
     print(json.dumps(added))
     if args.no_run:
         return 0
-    code = repro(checkout, args.name)
+    try:
+        code = repro(checkout, args.name)
+    except KeyboardInterrupt:  # the scene is added by now: say so rather than "nothing written"
+        print(f"usvc map: interrupted; scene {args.name!r} is added, `dvc repro metrics@{args.name}` goes on",
+              file=sys.stderr)
+        return 130
     if code == 0:
         print(f"map: {checkout / 'data' / args.name / 'map' / 'map.pt'}; "
               f"metrics: {checkout / 'results' / args.name / 'metrics.json'}", file=sys.stderr)
@@ -126,32 +132,88 @@ def _formats(args: argparse.Namespace) -> list[str]:
             raise UsvcError("--format needs --out-dir")
         return []
     chosen = [f.strip() for item in args.format or [",".join(FORMATS)] for f in item.split(",") if f.strip()]
+    if not chosen:
+        raise UsvcError(f"--format {','.join(args.format)!r} names no format; valid: {', '.join(FORMATS)}")
     for f in chosen:
         if f not in FORMATS:
             raise UsvcError(f"--format: unknown format {f!r}; known: {', '.join(FORMATS)}")
     if Path(args.out_dir).exists() and not Path(args.out_dir).is_dir():
         raise UsvcError(f"--out-dir {args.out_dir} exists and is not a folder")
+    _check_out_dir(Path(args.out_dir))
     return list(dict.fromkeys(chosen))
 
 
+def _check_out_dir(folder: Path) -> None:
+    """--out-dir must be a folder this user can write in, or one it can create: checked before any
+    photo is localized, so a read-only folder fails now, not after the whole batch."""
+    import tempfile
+
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsvcError(f"--out-dir {folder}: {existing} is a file, not a folder")
+    try:  # the files are written as temporary siblings, then renamed: try that much
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=".usvc-write-test-"):
+            pass
+    except OSError as e:
+        what = "folder" if existing == folder else f"folder {existing} (where it would be created)"
+        raise UsvcError(f"--out-dir {folder}: cannot write in the {what}: {e.strerror or e}") from None
+
+
+class _UnreadablePhoto(UsvcError):
+    """A photo whose header cannot be read: its own failure, not the batch's."""
+
+
+def _exif_focal_source(path: Path, focal_px: float) -> str:
+    """'the EXIF focal length (FocalLengthIn35mmFilm 1 mm: 4.44 px)', for the reason a query gives."""
+    from PIL import Image
+
+    from usvc.core.exif import EXIF_IFD, FOCAL_LENGTH, FOCAL_LENGTH_35MM
+
+    tag = ""
+    try:
+        with Image.open(path) as img:
+            exif = img.getexif()
+            tags = {**exif, **exif.get_ifd(EXIF_IFD)}
+        for key, label in ((FOCAL_LENGTH_35MM, "FocalLengthIn35mmFilm"), (FOCAL_LENGTH, "FocalLength")):
+            if tags.get(key):
+                tag = f"{label} {float(tags[key]):g} mm: "
+                break
+    except Exception:  # noqa: BLE001 - only for the message
+        pass
+    return f"the EXIF focal length ({tag}{focal_px:.4g} px)"
+
+
 def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]] | None, name: str,
-                  path: Path) -> tuple[Camera | None, str]:
-    """The first intrinsics source that applies: --focal, --intrinsics, --camera, EXIF, else none."""
+                  path: Path) -> tuple[Camera | None, str, str]:
+    """The first intrinsics source that applies: --focal, --intrinsics, --camera, EXIF (unless
+    --no-exif), else none; with what the source is, for a failure's reason ("" for a flag). A photo
+    whose header cannot be read raises _UnreadablePhoto."""
+    from PIL import Image
+
     from usvc.core.exif import exif_focal_px, oriented_size
     from usvc.core.scene import Camera
 
-    w, h = oriented_size(path)
+    try:
+        w, h = oriented_size(path)
+        focal = None if args.focal is not None or args.intrinsics is not None or camera is not None \
+            or args.no_exif else exif_focal_px(path)
+    except (UsvcError, OSError, ValueError, Image.DecompressionBombError) as e:
+        raise _UnreadablePhoto(str(e) if isinstance(e, UsvcError) else f"cannot read image {path} ({e})") from None
     params: tuple[float, ...]
+    note = ""
     if args.focal is not None:
         flag, source, model, params = "--focal", "focal", "SIMPLE_PINHOLE", (args.focal, w / 2, h / 2)
     elif args.intrinsics is not None:
         flag, source, model, params = "--intrinsics", "intrinsics", "PINHOLE", tuple(args.intrinsics)
     elif camera is not None:
         flag, source, (model, params) = f"--camera {camera[0]}", "camera", camera
-    elif (focal := exif_focal_px(path)) is not None:
+    elif focal is not None:
         flag, source, model, params = "EXIF focal length", "exif", "SIMPLE_PINHOLE", (focal, w / 2, h / 2)
+        note = _exif_focal_source(path, focal)
     else:
-        return None, "estimated"
+        return None, "estimated", ""
     try:
         cam = Camera(model, w, h, params)
     except SceneError as e:
@@ -160,17 +222,18 @@ def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]
     if not (0 < cx < w and 0 < cy < h):
         raise UsvcError(f"{flag}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image {name}: "
                         "wrong image size for these intrinsics?")
-    return cam, source
+    return cam, source, note
 
 
 def _localize(args: argparse.Namespace) -> int:
     """Localize each photo.
 
-    Flags, photo paths, headers and intrinsics are checked before the map is loaded, so a typo
-    fails in milliseconds, with one line on stderr (exit 1), rather than after the network is
-    built. A photo that turns out unreadable later (e.g. a truncated JPEG) gets its own record
-    with "error" and the others go on; the exit status is then 1. --out-dir files are written
-    only at the end, each atomically.
+    Flags, photo paths, headers, intrinsics and --out-dir's writability are checked before the
+    map is loaded, so a typo fails in milliseconds, with one line on stderr (exit 1), rather than
+    after the network is built. A photo that is unreadable (a header that cannot be read, a
+    decompression bomb, a truncated JPEG) gets its own record with "error" and the others go on;
+    the exit status is then 1 (when no photo can be read at all, that is the one error line).
+    --out-dir files are written only at the end, each atomically.
     """
     from usvc.relocalize.exports import Posed, check_names, export
 
@@ -183,10 +246,23 @@ def _localize(args: argparse.Namespace) -> int:
     photos = _expand_photos(photo_args)
     if formats:
         check_names(formats, [n for n, _ in photos], [p for _, p in photos])
-    cameras = [_photo_camera(args, camera, name, path) for name, path in photos]
+    cameras: list[tuple[Camera | None, str, str] | _UnreadablePhoto] = []
+    for name, path in photos:
+        try:
+            cameras.append(_photo_camera(args, camera, name, path))
+        except _UnreadablePhoto as err:  # that photo's failure; the others go on
+            cameras.append(err)
+    unreadable = [c for c in cameras if isinstance(c, _UnreadablePhoto)]
+    if len(unreadable) == len(photos):
+        raise UsvcError(str(unreadable[0]) if len(photos) == 1 else
+                        f"none of the {len(photos)} photos can be read; the first: {unreadable[0]}")
+    if not 0.0 < args.max_error_px <= MAX_ERROR_PX:
+        raise UsvcError(f"--max-error-px {args.max_error_px:g}: must be in (0, {MAX_ERROR_PX:g}] (px at a "
+                        f"{REFERENCE_SHORT_SIDE} px short side; larger thresholds accept any pose)")
 
     import cv2
     import torch
+    from PIL import Image
     from tqdm import tqdm
 
     from usvc.core.exif import read_image_bgr
@@ -212,10 +288,16 @@ def _localize(args: argparse.Namespace) -> int:
     bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
                disable=len(photos) < 2 or not sys.stderr.isatty())
     errors = 0
-    for (name, path), (cam, source) in bar:
+    for (name, path), found in bar:
         try:  # one unreadable photo is that photo's failure, not the end of the others'
-            rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
-            estimate = relocalizer.localize(rgb, cam)
+            if isinstance(found, _UnreadablePhoto):
+                raise found
+            cam, source, note = found
+            try:
+                rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
+            except Image.DecompressionBombError as e:  # Pillow's own size check, should the header pass
+                raise UsvcError(f"image {path} is too large to decode ({e})") from None
+            estimate = relocalizer.localize(rgb, cam, **({"intrinsics_source": note} if note else {}))
         except UsvcError as err:
             errors += 1
             log.error("%s: %s", name, err)
@@ -226,6 +308,8 @@ def _localize(args: argparse.Namespace) -> int:
                 sys.stdout.flush()
             continue
         record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
+        if source == "exif" and record.get("rejected", "").startswith(note):
+            record["rejected"] += "; --no-exif ignores EXIF focal lengths"
         records.append(record)
         if estimate.success:
             used = estimate.camera or cam
@@ -262,12 +346,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     mp = sub.add_parser("map", help="add a folder of photos (or a posed capture) as a scene and build its map")
     mp.add_argument("source", metavar="PHOTOS", help="folder of photos (format images) or of a capture")
-    mp.add_argument("--name", required=True, help="scene name: lower-case letters, digits, _")
+    mp.add_argument("--name", required=True,
+                    help="scene name: lower-case letters, digits, _, starting with a letter (not a config "
+                         "name of conf/, a keyword, or base_*)")
     mp.add_argument("--format", default="images",
                     help="images (photos only, posed by SfM; default) | llff | transforms | colmap | ace | 7scenes | cambridge")
     mp.add_argument("--split-n", type=int, default=8, help="every N-th photo is a query, never trained on")
-    mp.add_argument("--working-width", type=int, default=640, help="images are resized to this width (0 keeps it)")
-    mp.add_argument("--metric-scale", type=float, help="metres per scene unit, when the poses are metric")
+    mp.add_argument("--working-width", type=int, default=640,
+                    help="images are resized to this width, 64 to 16384 px (0 keeps it)")
+    mp.add_argument("--metric-scale", type=float, help="metres per scene unit (finite, > 0), when the poses are metric")
+    mp.add_argument("--no-exif", action="store_true",
+                    help="ignore the photos' EXIF focal lengths (SfM estimates the focal length; for wrong EXIF)")
     mp.add_argument("--no-run", action="store_true", help="only add the scene; run `dvc repro metrics@NAME` later")
     mp.set_defaults(run=_map)
 
@@ -284,10 +373,14 @@ def build_parser() -> argparse.ArgumentParser:
                       help="a COLMAP camera model and its parameters in COLMAP order, e.g. OPENCV fx fy cx cy "
                            "k1 k2 p1 p2 (distortion is undone before localizing). Without any of these the "
                            "focal length comes from the photo's EXIF, else it is estimated with the pose")
+    loc.add_argument("--no-exif", action="store_true",
+                     help="ignore the photos' EXIF focal lengths: without --focal/--intrinsics/--camera the focal "
+                          "length is estimated with the pose")
     loc.add_argument("--backend", choices=("opencv", "pycolmap"), default="opencv",
                      help="RANSAC-PnP solver")
     loc.add_argument("--max-error-px", type=float, default=10.0,
-                     help="RANSAC inlier threshold in pixels at a 480 px short side (scaled to the map's working size)")
+                     help="RANSAC inlier threshold in pixels at a 480 px short side (scaled to the map's working "
+                          "size), at most 100")
     loc.add_argument("--min-confidence", type=float,
                      help="answers with a smaller inlier fraction of the cells are failures (default: the "
                           "calibrated relocalize.min_confidence, see docs/confidence.md; 0 keeps every pose)")

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,11 +31,52 @@ FILM_LONG_SIDE_MM = 36.0  # 35 mm film (full frame) is 36 x 24 mm
 # FocalPlaneResolutionUnit -> millimetres; 2 (inch) is EXIF's default; 4 and 5 are TIFF/EP's.
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
 _SWAPS_AXES = (5, 6, 7, 8)
+# Larger images are refused from their header, before anything is decoded: 100 MP is 300 MB of
+# 8-bit BGR (a 12000x8000 medium-format photo is 96 MP), and a tiny file can claim billions
+# (a "decompression bomb"). Pillow's own check warns above 89 MP and raises above 179 MP.
+MAX_IMAGE_PIXELS = 100_000_000
+_PIL_LIMIT_LOCK = threading.Lock()
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from the header of an image Pillow refused as a decompression bomb."""
+    with _PIL_LIMIT_LOCK:
+        limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with warnings.catch_warnings(), Image.open(path) as img:
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                return img.size
+        except Exception:  # noqa: BLE001 - only for the message
+            return None
+        finally:
+            Image.MAX_IMAGE_PIXELS = limit
+
+
+def _too_large(path: Path, size: tuple[int, int] | None) -> SceneError:
+    claim = f"is {size[0]}x{size[1]} = {size[0] * size[1] / 1e6:.0f} megapixels" if size else "claims more pixels"
+    return SceneError(f"image {path} {claim}, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} megapixel limit "
+                      f"(usvc.core.exif.MAX_IMAGE_PIXELS): downscale it, or is its header corrupt?")
+
+
+def _open_checked(path: str | Path) -> Image.Image:
+    """Pillow's lazy open (the header only) with the size limit applied; Pillow's own decoding
+    errors pass through."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our limit applies instead
+            img = Image.open(path)
+    except Image.DecompressionBombError:
+        raise _too_large(Path(path), _header_size(Path(path))) from None
+    w, h = img.size
+    if w * h > MAX_IMAGE_PIXELS:
+        img.close()
+        raise _too_large(Path(path), (w, h))
+    return img
 
 
 def _open(path: str | Path) -> Image.Image:
     try:
-        return Image.open(path)
+        return _open_checked(path)
     except FileNotFoundError:
         raise SceneError(f"image not found: {path}") from None
     except (OSError, UnidentifiedImageError, ValueError) as e:
@@ -178,18 +221,57 @@ def jpeg_is_complete(data: bytes) -> bool:
     return False
 
 
+# Pillow modes of samples wider than 8 bits: Pillow's convert("RGB") clips them (16-bit -> all
+# white, floats in 0..1 -> all black), so read_image_bgr scales them itself.
+_WIDE_MODES = frozenset({"I;16", "I;16B", "I;16L", "I;16N", "I;16S", "I", "F"})
+FLOAT_RANGE_TOLERANCE = 1e-3  # float pixels are read as 0..1; a little overshoot (resampling ringing) is clipped
+
+
+def to_uint8(pixels: np.ndarray, where: str | Path) -> np.ndarray:
+    """8-bit samples from a decoder's array: 16-bit / 257 (rounded), floats in 0..1 * 255
+    (rounded, clipped); other sample types are refused by name."""
+    if pixels.dtype == np.uint8:
+        return pixels
+    if pixels.dtype == np.uint16:
+        return ((pixels.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    if pixels.dtype.kind == "f":
+        if not np.isfinite(pixels).all():
+            raise SceneError(f"image {where}: {pixels.dtype} pixels include NaN or infinity: save it as 8 or 16 bits")
+        lo, hi = float(pixels.min()), float(pixels.max())
+        if lo < -FLOAT_RANGE_TOLERANCE or hi > 1 + FLOAT_RANGE_TOLERANCE:
+            raise SceneError(f"image {where}: {pixels.dtype} pixels range {lo:g}..{hi:g}, but floating-point photos "
+                             "are read as 0..1 (HDR or data, not a photo?): save it as 8 or 16 bits")
+        return np.rint(np.clip(pixels, 0.0, 1.0) * 255.0).astype(np.uint8)
+    raise SceneError(f"image {where}: {pixels.dtype} samples ({8 * pixels.dtype.itemsize}-bit "
+                     f"{'integer' if pixels.dtype.kind in 'iu' else pixels.dtype.kind}) are not supported: "
+                     "save it as 8 or 16 bits")
+
+
+def _to_bgr(pixels: np.ndarray, rgb: bool) -> np.ndarray:
+    """uint8 HxWx3 BGR from gray, gray+alpha, RGB(A) (``rgb``) or BGR(A) samples."""
+    if pixels.ndim == 3 and pixels.shape[2] == 1:
+        pixels = pixels[..., 0]
+    if pixels.ndim == 2:
+        return np.ascontiguousarray(np.repeat(pixels[..., None], 3, axis=2))
+    if pixels.shape[2] == 2:  # gray + alpha
+        return np.ascontiguousarray(np.repeat(pixels[..., :1], 3, axis=2))
+    colour = pixels[..., :3]
+    return np.ascontiguousarray(colour[..., ::-1] if rgb else colour)
+
+
 def read_image_bgr(path: str | Path) -> np.ndarray:
     """uint8 HxWx3 BGR pixels with the EXIF orientation applied (the size oriented_size gives).
 
     OpenCV decodes, with its own orientation handling off so that every format is turned by the
     same rule. Pillow decodes TIFFs (OpenCV turns them whatever it is told, and OpenCV 5 fails on
-    orientations 5-8) and whatever OpenCV cannot.
+    orientations 5-8) and whatever OpenCV cannot. Images over MAX_IMAGE_PIXELS are refused from
+    their header; 16-bit samples are scaled to 8 bits (/257) and floating-point ones in 0..1 by 255.
     """
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"image not found: {path}")
     try:
-        with Image.open(path) as img:
+        with _open_checked(path) as img:
             orientation, fmt = _orientation(_exif(img)), img.format
     except (OSError, UnidentifiedImageError, ValueError):
         orientation, fmt = 1, None  # OpenCV may still decode it
@@ -198,12 +280,28 @@ def read_image_bgr(path: str | Path) -> np.ndarray:
     if fmt != "TIFF":
         with _quiet_opencv():
             bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+            if bgr is None and fmt is None:  # e.g. an RGB float TIFF, which only IMREAD_UNCHANGED reads
+                raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+                if raw is not None and raw.size:
+                    return _to_bgr(to_uint8(raw, path), rgb=False)
         if bgr is not None:
             return apply_orientation(bgr, orientation)
     try:
-        with Image.open(path) as img:
+        with Image.open(path) as img:  # its size passed _open_checked (or Pillow cannot read it)
+            stored = _stored_size(img)
+            shown = stored[::-1] if orientation in _SWAPS_AXES else stored
+            if img.format == "TIFF" and img.size != stored:
+                # Pillow 13 reports a turned TIFF's size turned before loading and then decodes grey and
+                # 16-bit samples into that turned frame (garbage); from the stored size it decodes right
+                img._size = stored
             img.load()  # Pillow >= 11 turns a TIFF while loading it and then drops its orientation tag
-            rgb = np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
-    except (OSError, UnidentifiedImageError, ValueError):
-        raise SceneError(f"cannot decode image {path}") from None
+            img = ImageOps.exif_transpose(img)
+            if img.size != shown:
+                raise SceneError(f"cannot decode image {path}: decoded {img.size[0]}x{img.size[1]} pixels, but its "
+                                 f"header says {shown[0]}x{shown[1]} (EXIF orientation {orientation})")
+            if img.mode in _WIDE_MODES:
+                return _to_bgr(to_uint8(np.asarray(img), path), rgb=True)
+            rgb = np.asarray(img.convert("RGB"))
+    except (OSError, UnidentifiedImageError, ValueError) as e:
+        raise SceneError(f"cannot decode image {path} ({e})") from None
     return np.ascontiguousarray(rgb[..., ::-1])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -10,6 +11,9 @@ from usvc.core.options import one_of, positive
 FORMATS = ("llff", "transforms", "colmap", "ace", "7scenes", "cambridge", "images")
 SPLIT_RULES = ("given", "every_nth")
 UNDISTORT_FOV = ("crop", "full")
+# working_width bounds (0 keeps the size): below MIN, SfM and the network have nothing to work on (and
+# rounding the height makes a radial camera anisotropic); above MAX, no camera's photos are that wide.
+MIN_WORKING_WIDTH, MAX_WORKING_WIDTH = 64, 16384
 
 
 @dataclass
@@ -23,12 +27,14 @@ class SceneOptions:
     working_width: int = 640  # images are resized to this width before anything else; 0 = keep
     undistort_fov: str = "crop"  # distorted cameras become pinhole: crop (no black border) | full (every pixel)
     generated: bool = False  # produced by the generate stage (the bundled miniature scene)
+    exif_focal: bool = True  # format images: EXIF focal lengths are SfM's prior (false: ignored, estimated by SfM)
 
     def problems(self) -> list[str]:
         out = one_of(self, "format", FORMATS) + one_of(self, "split", SPLIT_RULES)
         out += one_of(self, "undistort_fov", UNDISTORT_FOV) + positive(self, "split_n")
-        if self.working_width < 0:
-            out.append(f"working_width={self.working_width!r} must be >= 0 (0 keeps the size)")
-        if self.metric_scale is not None and not self.metric_scale > 0:
-            out.append(f"metric_scale={self.metric_scale!r} must be > 0 or null")
+        if self.working_width != 0 and not MIN_WORKING_WIDTH <= self.working_width <= MAX_WORKING_WIDTH:
+            out.append(f"working_width={self.working_width!r} must be 0 (keep the size) or in "
+                       f"[{MIN_WORKING_WIDTH}, {MAX_WORKING_WIDTH}] px")
+        if self.metric_scale is not None and not (math.isfinite(self.metric_scale) and self.metric_scale > 0):
+            out.append(f"metric_scale={self.metric_scale!r} must be finite and > 0, or null")
         return out

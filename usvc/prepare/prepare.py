@@ -21,7 +21,7 @@ from usvc.core.errors import SceneError
 from usvc.core.exif import read_image_bgr
 from usvc.core.scene import Frame, Scene
 from usvc.core.scene_io import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
-from usvc.core.undistort import undistort
+from usvc.core.undistort import check_distortion, undistort
 from usvc.sfm.posing import pose_scene
 from usvc.sfm.sfm import MIN_MAPPING_IMAGES, SfmOptions
 
@@ -74,10 +74,21 @@ def check_distinct_mapping_images(scene: str, contents: dict[str, list[str]]) ->
                 sum(len(n) - 1 for n in copies), example)
 
 
+def check_cameras(frames: list[Frame], undistort_fov: str) -> None:
+    """Every distinct camera's distortion, before any photo is decoded (errors name its photos)."""
+    photos: dict = {}
+    for f in frames:
+        photos.setdefault(f.camera, []).append(f.name)
+    for camera, names in photos.items():
+        more = f" and {len(names) - 1} more photo{'s' * (len(names) > 2)}" if len(names) > 1 else ""
+        check_distortion(camera, undistort_fov, where=f"{names[0]}{more}")
+
+
 def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str) -> dict:
     """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth)."""
     scene.split("train")
     scene.split("test")
+    check_cameras(scene.frames, undistort_fov)
     out_frames: list[Frame] = []
     depths: list[np.ndarray | None] = []
     contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels

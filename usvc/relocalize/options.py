@@ -13,6 +13,9 @@ BACKENDS = ("pycolmap", "opencv")
 REFINE = ("features", "keypoints", "none")
 EXTRACTORS = ("opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
+# An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
+# cell "agrees" with a pose far off, so confidence says nothing.
+MAX_ERROR_PX = 100.0
 
 
 @dataclass
@@ -42,6 +45,11 @@ class RelocalizeOptions:
         out += positive(self, "max_error_px", "min_inliers", "refine_radius_px", "refine_max_iterations",
                         "refine_delta", "refine_min_correspondences", "features_max_keypoints",
                         "features_max_error_px", "features_view_margin_deg")
+        for name in ("max_error_px", "features_max_error_px"):
+            value = getattr(self, name)
+            if isinstance(value, (int, float)) and value > MAX_ERROR_PX:
+                out.append(f"{name}={value!r} must be <= {MAX_ERROR_PX:g} (px at a {REFERENCE_SHORT_SIDE} px short "
+                           "side; larger thresholds accept any pose)")
         out += in_range(self, "features_ratio", 0.0, 1.0)
         if self.features_min_inliers < 4:
             out.append(f"features_min_inliers={self.features_min_inliers!r} must be >= 4 (a pose needs 4 points)")

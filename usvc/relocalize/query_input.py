@@ -25,9 +25,14 @@ def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> C
         if (cam.width, cam.height) != (width, height):
             raise UsvcError(f"the camera is {cam.width}x{cam.height} but the image is {width}x{height}")
         return cam
+    if isinstance(intrinsics, (bool, np.bool_)) or (isinstance(intrinsics, np.ndarray) and intrinsics.dtype == bool):
+        raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, got "
+                        f"{intrinsics!r:.40} (a bool; None estimates the focal length)")
     if isinstance(intrinsics, (dict, str, bytes)):
         raise UsvcError(f"intrinsics must be a focal, (fx, fy, cx, cy), a 3x3 K or a usvc Camera, "
                         f"got a {type(intrinsics).__name__}")
+    if isinstance(intrinsics, (list, tuple)) and any(isinstance(v, (bool, np.bool_)) for v in intrinsics):
+        raise UsvcError(f"intrinsics must be numbers, got {intrinsics!r:.80} (holds a bool)")
     try:
         arr = np.asarray(intrinsics, dtype=np.float64)
     except (TypeError, ValueError):

@@ -53,6 +53,16 @@ log = logging.getLogger(__name__)
 
 MIN_IMAGE_SIDE = 32
 MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
+# A pinhole focal length (px) over the photo's long side outside this range is no camera's: a
+# field of view over ~157 deg or under ~3 deg (a fisheye's pinhole focal is ~0.3, a 10x zoom ~7).
+FOCAL_RANGE = (0.1, 20.0)
+# An estimated focal length (over the long side) more than this factor outside the range of the
+# map's own cameras (metadata focal_range) is no reading of this photo: a phone's lenses span ~3x.
+FOCAL_SPREAD = 3.0
+MAX_PIXEL_ASPECT = 1.25  # fx / fy (either way) beyond this: the photo was resized to another aspect
+PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size from the centre: a warning
+# A photo below this contrast (std of its grey levels in [0, 1]) is blank: nothing to localize.
+MIN_CONTRAST = 1.0 / 255.0
 
 CAMERA_FOV = "crop"
 # The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
@@ -84,6 +94,98 @@ def poses_agree(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray, 
     angle = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
     gap = float(np.linalg.norm(camera_centers(R1, t1) - camera_centers(R2, t2)))
     return angle <= AGREE_DEG and gap <= AGREE_DEPTH_FRACTION * median_depth
+
+
+def field_of_view_deg(focal: float, long_side: int) -> float:
+    return float(np.degrees(2.0 * np.arctan2(long_side / 2.0, focal)))
+
+
+def implausible_focal(focal: float, width: int, height: int, what: str) -> str:
+    """Why `focal` (px) is no camera's for a width x height photo ("" when it is plausible);
+    `what` names it, its value included."""
+    long_side = max(width, height)
+    low, high = FOCAL_RANGE
+    if np.isfinite(focal) and low * long_side <= focal <= high * long_side:
+        return ""
+    fovs = (field_of_view_deg(high * long_side, long_side), field_of_view_deg(low * long_side, long_side))
+    return (f"{what} is implausible for a {width}x{height} photo: a field of view of "
+            f"{field_of_view_deg(focal, long_side):.3g} deg across its long side, where cameras have "
+            f"{fovs[0]:.0f}-{fovs[1]:.0f} deg")
+
+
+def intrinsics_warnings(camera: Camera) -> list[str]:
+    """Doubts about intrinsics that do not stop a query: non-square pixels (fx/fy beyond
+    MAX_PIXEL_ASPECT: a photo stretched to another aspect ratio) and a principal point far from
+    the image's centre (cx and cy swapped, or intrinsics of a crop)."""
+    out = []
+    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+    w, h = camera.width, camera.height
+    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
+        out.append(f"fx/fy = {fx / fy:.2f}: a camera's pixels are square (fx = fy), so this photo was resized to "
+                   "another aspect ratio, or the intrinsics are wrong; a stretched photo localizes poorly")
+    dx, dy = abs(cx - w / 2) / w, abs(cy - h / 2) / h
+    if max(dx, dy) > PRINCIPAL_OFFSET:
+        swapped = abs(cy - w / 2) / w <= PRINCIPAL_OFFSET and abs(cx - h / 2) / h <= PRINCIPAL_OFFSET
+        out.append(f"principal point ({cx:g}, {cy:g}) is {100 * dx:.0f} % of the width and {100 * dy:.0f} % of the "
+                   f"height off the centre of the {w}x{h} photo (cameras: a few %): "
+                   + ("cx and cy look swapped" if swapped else "intrinsics of another image or a crop?"))
+    return out
+
+
+def _focal_reason(evidence: str, ratio: float, tolerance: float, source: str) -> str:
+    """Why a given focal length is refused; `source` names where it came from (e.g. EXIF)."""
+    if source:
+        return (f"{source} disagrees with the photo's content: {evidence} a focal length {ratio:.2f}x it "
+                f"(tolerance {tolerance:g})")
+    return f"{evidence} a focal length {ratio:.2f}x the given one (tolerance {tolerance:g}); check the intrinsics"
+
+
+def _project(points: np.ndarray, rotvec: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float,
+             cy: float) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.spatial.transform import Rotation
+
+    cam = points @ Rotation.from_rotvec(rotvec).as_matrix().T + t
+    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
+    return np.stack([fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy], 1), cam[:, 2]
+
+
+def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
+                    max_error_px: float) -> str:
+    """Why the photo looks stretched ("" when it does not): a pinhole camera with non-square pixels
+    (fx/fy beyond MAX_PIXEL_ASPECT), fitted with the pose from (camera, R, t), explains clearly more
+    correspondences than `camera` (square pixels) does: its inliers are at most
+    FOCAL_OBSERVABLE_FRACTION of the fitted camera's. A photo resized to another aspect ratio
+    looks like this; where the two explain about as much, the photo cannot tell and this says nothing."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    p2 = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    p3 = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    base = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
+    if base.sum() < 8:
+        return ""
+    (f0, _), (cx, cy) = camera.focal, camera.principal_point
+    x = np.concatenate([Rotation.from_matrix(R).as_rotvec(), np.asarray(t, dtype=np.float64).reshape(3), [0.0, 0.0]])
+    mask = base
+    for _ in range(3):  # fit on the inliers, re-select them, as ACE's pose refinement does
+        def residuals(v: np.ndarray, m: np.ndarray = mask) -> np.ndarray:
+            uv, _ = _project(p3[m], v[:3], v[3:6], f0 * np.exp(v[6]), f0 * np.exp(v[7]), cx, cy)
+            return (uv - p2[m]).reshape(-1)
+
+        x = least_squares(residuals, x, loss="soft_l1", f_scale=max_error_px, max_nfev=200).x
+        uv, z = _project(p3, x[:3], x[3:6], f0 * np.exp(x[6]), f0 * np.exp(x[7]), cx, cy)
+        err = np.linalg.norm(uv - p2, axis=1)
+        grown = np.isfinite(err) & (z > 0) & (err < max_error_px)
+        if grown.sum() < 8:
+            return ""
+        mask = grown
+    aspect = float(np.exp(x[6] - x[7]))
+    support, kept = int(mask.sum()), int(base.sum())
+    if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > FOCAL_OBSERVABLE_FRACTION * support:
+        return ""
+    return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
+            "of its cells as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
+            "resized to another aspect ratio? Localize the original photo, or give its intrinsics")
 
 
 def _nan_R() -> np.ndarray:
@@ -121,11 +223,14 @@ class PoseEstimate:
     refine_path: str = ""  # which evidence gave the answer: guided | global (features), keypoints, dense
     feature_inliers: int = 0  # PnP inliers of the feature pose (refine=features), 0 when it found none
     feature_passes: list = field(default_factory=list)  # per matching pass: kind, radius_px, candidates, matches, inliers
+    warnings: list = field(default_factory=list)  # doubts about the input that did not stop it (principal point...)
+    pose_found: bool = True  # False when no pose was found at all (confidence 0 whatever `rejected` says)
 
     @property
     def confidence(self) -> float:
         """Fraction of the image's cells that agree with the pose RANSAC found (0 when it found none)."""
-        return self.inliers / self.cells if (self.success or self.rejected) and self.cells else 0.0
+        return self.inliers / self.cells if (self.success or self.rejected) and self.pose_found and self.cells \
+            else 0.0
 
     @property
     def center(self) -> np.ndarray:
@@ -150,6 +255,8 @@ class PoseEstimate:
                                  "passes": self.feature_passes}
         if self.rejected:
             out["rejected"] = self.rejected
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
         if self.camera is not None:
             c = self.camera
             out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
@@ -180,14 +287,19 @@ class Relocalizer:
                 encoder_weights = WEIGHTS_DIR / Path(recorded).name
         encoder, _ = load_configured_encoder(width, encoder_weights, kind)
         self.regressor: Regressor
-        self.regressor, self.metadata = load_map(map_path, encoder)
+        self.regressor, self.metadata = load_map(map_path, encoder, header)
         self.regressor.to(device).eval()
         self.device = device
         # The map's weights are stored at fp16 whatever precision it was trained at, so any map runs
         # at either precision on any machine.
         self.precision = resolve_precision(self.options.precision, device)
-        self.short_side = int(self.metadata.get("short_side", 0)) or None
+        if "short_side" not in self.metadata:
+            raise UsvcError(f"map file {map_path} has no metadata field 'short_side' (the image size its head "
+                            "was trained at): not a map the train stage wrote")
+        self.short_side = int(self.metadata["short_side"])  # checked on load: an integer in range
         self.map_path = Path(map_path)
+        spread = self.metadata.get("focal_range")  # checked on load; maps before it have none
+        self.focal_range = (float(spread[0]), float(spread[1])) if spread is not None else None
         self.keypoints_xyz = map_keypoints(header)
         depth = self.metadata.get("median_depth")
         self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
@@ -231,7 +343,7 @@ class Relocalizer:
         return out.permute(1, 2, 0).double().cpu().numpy()
 
     def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float,
-                            tolerance: float | None = None) -> str:
+                            tolerance: float | None = None, source: str = "") -> str:
         """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
         imply another one (beyond `tolerance`, default focal_tolerance). A wrong focal length can
         still explain most cells with a wrong pose (a shallow view trades focal length for
@@ -245,18 +357,23 @@ class Relocalizer:
         ratio = estimate.params[0] / given
         if abs(np.log(ratio)) <= np.log1p(tolerance):
             return ""
-        return (f"the image implies a focal length {ratio:.2f}x the given one "
-                f"(tolerance {tolerance:g}); check the intrinsics")
+        return _focal_reason("the image implies", ratio, tolerance, source)
 
     def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None, *,
-                 channels: str = "rgb") -> PoseEstimate:
+                 channels: str = "rgb", intrinsics_source: str = "") -> PoseEstimate:
         """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
         (principal point at the image centre, no distortion); a distorted Camera is undistorted
         first, exactly as the prepare stage undistorts mapping images.
 
         An array is uint8, HxW grey or HxWx3 in RGB order (``channels="rgb"``, as PIL and imageio
         give it) or BGR (``channels="bgr"``, as ``cv2.imread`` gives it); a path is read with its
-        EXIF orientation applied."""
+        EXIF orientation applied. ``intrinsics_source`` names where the intrinsics came from (e.g.
+        "the EXIF focal length (...)") in the reason a query they fail gives.
+
+        Every failed answer says why in ``rejected``; doubts that did not stop it (a principal
+        point far off the centre, non-square pixels) are in ``warnings``."""
+        if not isinstance(intrinsics_source, str):
+            raise UsvcError(f"intrinsics_source must be a string, got {type(intrinsics_source).__name__}")
         t0 = time.perf_counter()
         gray = as_gray(image, channels)
         h, w = gray.shape
@@ -266,6 +383,21 @@ class Relocalizer:
             raise UsvcError(f"image is {w}x{h}, an aspect ratio of {max(h, w) / min(h, w):.1f}:1; usvc localizes "
                             f"photos up to {MAX_ASPECT}:1 (a strip or panorama is not a camera view it can map)")
         given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
+        warnings = intrinsics_warnings(given) if given is not None else []
+        for line in warnings:
+            log.warning("%s", line)
+        early = ""  # a reason to answer without looking: a blank photo, a focal length no camera has
+        if float(gray.std()) < MIN_CONTRAST:
+            early = (f"the photo is blank (its grey levels vary by {255 * float(gray.std()):.2g} of 255): "
+                     "nothing to localize")
+        elif given is not None:
+            focal = float(np.sqrt(given.focal[0] * given.focal[1]))
+            early = implausible_focal(focal, w, h, intrinsics_source or f"the given focal length ({focal:.4g} px)")
+        if early:
+            hw = self.working_image(gray)[0].shape
+            return PoseEstimate(False, _nan_R(), _nan_t(), 0, -(-hw[0] // 8) * -(-hw[1] // 8),
+                                {"total": time.perf_counter() - t0}, camera=given, focal_estimated=intrinsics is None,
+                                rejected=early, warnings=warnings, pose_found=False)
         camera = None
         if given is not None:
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
@@ -280,17 +412,31 @@ class Relocalizer:
         # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
         threshold = self.options.max_error_px * min(gray.shape) / REFERENCE_SHORT_SIDE
         pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+        no_focal = ""  # why the map's coordinates gave no focal length, when the photo has none
         if camera is None:
             camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
                                     self.seed)
-            if camera is not None:
+            if camera is None:
+                no_focal = ("no camera explains the map's scene coordinates of this photo, so its focal length "
+                            "cannot be estimated: not a view of this map's scene (or too dark or blurred?)")
+            else:
                 f = camera.params[0] / resize
-                given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
-                full_camera = given
+                no_focal = implausible_focal(f, w, h, f"the focal length estimated with the pose ({f:.4g} px)")
+                ratio, lo_hi = f / max(w, h), self.focal_range
+                if not no_focal and lo_hi and not lo_hi[0] / FOCAL_SPREAD <= ratio <= lo_hi[1] * FOCAL_SPREAD:
+                    no_focal = (f"the focal length estimated with the pose ({f:.4g} px, {ratio:.2f}x the long side) "
+                                f"is over {FOCAL_SPREAD:g}x off the map's cameras' ({lo_hi[0]:.2f}-{lo_hi[1]:.2f}x)")
+                if no_focal:  # the map does not read this photo: its dense answer is no answer
+                    no_focal += ": the map does not recognise this photo (another place, or stretched or cropped?)"
+                    camera = None
+                else:
+                    given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
+                    full_camera = given
         if camera is None and self.landmarks is None:
             t3 = time.perf_counter()
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
-            return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True)
+            return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True,
+                                rejected=no_focal, warnings=warnings, pose_found=False)
         if camera is not None:
             result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                                seed=self.seed, min_inliers=self.options.min_inliers,
@@ -299,7 +445,9 @@ class Relocalizer:
             result = PnPResult(False, _nan_R(), _nan_t(), np.zeros(0, bool), 0, 0.0)
         rejected = ""
         if result.success and intrinsics is not None and self.options.focal_tolerance > 0 and self.landmarks is None:
-            rejected = self._focal_disagreement(pixels, coords, camera, threshold)
+            rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
+        if result.success and intrinsics is None and not rejected:  # a square-pixel focal estimated: stretched?
+            rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
         t3 = time.perf_counter()
         R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
         path, feature = "dense", None
@@ -316,7 +464,8 @@ class Relocalizer:
             if full_camera is None:  # COLMAP's prior for a photo without calibration
                 full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
                 given = full_camera
-            feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None)
+            feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None,
+                                                       intrinsics_source)
             if feature_rejected == FOCAL_UNOBSERVABLE:
                 # The features cannot tell: the map's coordinates decide, at a wider tolerance since
                 # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails),
@@ -325,7 +474,8 @@ class Relocalizer:
                 wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
                 agree = result.success and feature.success and \
                     poses_agree(result.R, result.t, feature.R, feature.t, self.median_depth)
-                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide) if agree else ""
+                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide,
+                                                            intrinsics_source) if agree else ""
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
@@ -334,7 +484,7 @@ class Relocalizer:
                 rejected = feature_rejected
             elif result.success and intrinsics is not None and self.options.focal_tolerance > 0:
                 # no feature pose: the dense answer stands only if the map agrees with the intrinsics
-                rejected = self._focal_disagreement(pixels, coords, camera, threshold)
+                rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
         t4 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
                    "total": t4 - t0}
@@ -343,8 +493,11 @@ class Relocalizer:
             # a pose, but one that too few cells agree with: wrong answers look like this
             rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
         success = (result.success or by_features) and not rejected
+        pose_found = bool(result.success or by_features)
         if not success:
             R, t = _nan_R(), _nan_t()
+            if not rejected:  # every failure says why
+                rejected = no_focal or self._no_pose_reason(result, feature, hc * wc)
         return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
                             initial_R=result.R.copy() if success and result.success else _nan_R(),
                             initial_t=result.t.copy() if success and result.success else _nan_t(),
@@ -353,9 +506,19 @@ class Relocalizer:
                             refine_method=self.options.refine if (self.refine or self.landmarks is not None)
                             else "none", refine_path=path if success else "",
                             feature_inliers=feature.inliers if feature is not None else 0,
-                            feature_passes=feature.passes if feature is not None else [])
+                            feature_passes=feature.passes if feature is not None else [],
+                            warnings=warnings, pose_found=pose_found)
 
-    def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool) -> tuple[FeatureResult, str]:
+    def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
+        """Why neither the map's coordinates nor the features gave a pose."""
+        why = (f"no pose: RANSAC-PnP on the map's scene coordinates found none that min_inliers="
+               f"{self.options.min_inliers} of the {cells} cells agree with ({result.num_inliers} at best)")
+        if feature is not None:
+            why += f", and the photo's features gave none ({feature.why or 'no match to the landmarks'})"
+        return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
+
+    def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool,
+                  source: str = "") -> tuple[FeatureResult, str]:
         """Refinement by features on the undistorted photo (resized to the mapping images' short
         side when larger) from the dense pose; returns the result and why it is not trusted ("")."""
         assert self.landmarks is not None
@@ -371,9 +534,10 @@ class Relocalizer:
                                    self.seed)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
             return found, ""
-        return found, self._feature_focal_verdict(feats, camera, opts)
+        return found, self._feature_focal_verdict(feats, camera, opts, source)
 
-    def _feature_focal_verdict(self, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions) -> str:
+    def _feature_focal_verdict(self, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
+                               source: str = "") -> str:
         """Why the photo's features contradict the given focal length ("" when they do not), or
         FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on the
         matches to every landmark, which do not depend on the given intrinsics (guided matches
@@ -398,5 +562,4 @@ class Relocalizer:
         ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
         if abs(np.log(ratio)) <= np.log1p(tol):
             return ""
-        return (f"the matched features imply a focal length {ratio:.2f}x the given one "
-                f"(tolerance {tol:g}); check the intrinsics")
+        return _focal_reason("the matched features imply", ratio, tol, source)

@@ -26,19 +26,19 @@ _MODULES = {
 }
 
 
-def load_scene(
+def import_scene(
     fmt: str,
     path: str | Path,
     name: str,
     split_rule: str = "given",
     split_n: int = 8,
     metric_scale: float | None = None,
+    exif_focal: bool = True,
 ) -> Scene:
-    """Import the scene at ``path`` stored in layout ``fmt`` and validate it fully.
+    """The scene at ``path`` stored in layout ``fmt``, not yet checked for its images and splits
+    (:func:`load_scene` does both): for callers that first count the photos themselves.
 
-    Validation happens here rather than lazily so a broken scene fails at import time with
-    the file named, not halfway through a long stage: images must exist and both splits
-    must be non-empty.
+    ``exif_focal`` (format ``images`` only): False ignores the photos' EXIF focal lengths.
     """
     if fmt not in FORMATS:
         raise SceneError(f"unknown scene format {fmt!r}; known formats: {', '.join(FORMATS)}")
@@ -49,10 +49,30 @@ def load_scene(
         raise SceneError(f"scene {name!r}: path {root} does not exist")
     root = root.resolve()
     module = importlib.import_module(f"usvc.prepare.importers.{_MODULES[fmt]}")
+    extra = {} if fmt != "images" else {"exif_focal": exif_focal}
     try:
-        scene: Scene = module.load(root, name, split_rule, split_n, metric_scale)
+        scene: Scene = module.load(root, name, split_rule, split_n, metric_scale, **extra)
     except OSError as e:  # permissions, broken links: still one line naming the file
         raise SceneError(f"scene {name!r}: {e}") from None
+    return scene
+
+
+def load_scene(
+    fmt: str,
+    path: str | Path,
+    name: str,
+    split_rule: str = "given",
+    split_n: int = 8,
+    metric_scale: float | None = None,
+    exif_focal: bool = True,
+) -> Scene:
+    """Import the scene at ``path`` stored in layout ``fmt`` and validate it fully.
+
+    Validation happens here rather than lazily so a broken scene fails at import time with
+    the file named, not halfway through a long stage: images must exist and both splits
+    must be non-empty.
+    """
+    scene = import_scene(fmt, path, name, split_rule, split_n, metric_scale, exif_focal)
     scene.check_images_exist()
     for which in ("train", "test"):
         scene.split(which)

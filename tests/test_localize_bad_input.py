@@ -1,0 +1,476 @@
+"""Bad input to `usvc localize`, the Relocalizer API and map files: one clear line naming what is
+wrong and where (exit 1 from the CLI, never a traceback); in a batch, a bad photo is its own
+failure and the others go on; every failed answer says why.
+
+The map is tiny and untrained; where a pose matters, the network is replaced by the exact scene
+coordinates of a known camera (as in tests/test_relocalizer.py).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from test_relocalizer import SHORT_SIDE, exact_coordinates, make_map, photo
+
+from usvc.cli import main
+from usvc.core.errors import UsvcError
+from usvc.core.scene import Camera
+from usvc.model.encoder import Encoder
+from usvc.model.errors import ModelError
+from usvc.model.head import CHECKSUM_KEY, Head, Regressor, load_map, map_checksum, read_map_header, save_map
+from usvc.relocalize.exports import FORMATS
+from usvc.relocalize.options import RelocalizeOptions
+from usvc.relocalize.query_input import camera_from_intrinsics
+from usvc.relocalize.relocalizer import Relocalizer, implausible_focal, intrinsics_warnings, stretch_verdict
+
+CENTRED = Camera("SIMPLE_PINHOLE", 160, 120, (130.0, 80.0, 60.0))
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    return make_map(tmp_path_factory.mktemp("badmap"))
+
+
+@pytest.fixture(scope="module")
+def photo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("photos") / "photo.png"
+    cv2.imwrite(str(path), photo(160, 120))
+    return path
+
+
+def exactly(monkeypatch: pytest.MonkeyPatch, camera: Camera = CENTRED) -> None:
+    """The network replaced by the exact coordinates `camera` (at 160x120) sees."""
+    monkeypatch.setattr(Relocalizer, "scene_coordinates",
+                        lambda self, g: exact_coordinates(-(-g.shape[0] // 8), -(-g.shape[1] // 8), camera))
+
+
+def run(capsys: pytest.CaptureFixture[str], tiny_map: tuple[Path, Path], *args: str | Path) -> tuple[int, str, str]:
+    """`usvc localize --map M --encoder-weights W ARGS` in this process: (status, stdout, stderr)."""
+    rc = main(["localize", "--map", str(tiny_map[0]), "--encoder-weights", str(tiny_map[1]), *map(str, args)])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def one_error_line(rc: int, out: str, err: str) -> str:
+    assert rc == 1, (out, err)
+    assert out == "" and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("usvc localize: error: ")
+    return lines[0]
+
+
+def records_of(out: str) -> list[dict]:
+    return [json.loads(line) for line in out.splitlines()]
+
+
+def rewrite(src: Path, dst: Path, edit, checksum: str = "keep") -> Path:
+    """A copy of map `src` with its payload edited; its checksum kept (a damaged file), recomputed
+    (a file whose writer got it wrong) or dropped (a map saved before checksums)."""
+    payload = torch.load(src, map_location="cpu", weights_only=True)
+    edit(payload)
+    if checksum == "recompute":
+        payload[CHECKSUM_KEY] = map_checksum(payload)
+    elif checksum == "drop":
+        payload.pop(CHECKSUM_KEY, None)
+    torch.save(payload, dst)
+    return dst
+
+
+# ------------------------------------------------------------------ 1. metadata out of range / missing
+
+@pytest.mark.parametrize("field, value, match", [
+    ("short_side", -120, r"metadata short_side=-120 must be an integer in \[32, 8192\]"),
+    ("short_side", 0, r"metadata short_side=0 must be an integer"),
+    ("short_side", "120", r"metadata short_side='120' must be an integer"),
+    ("short_side", True, r"metadata short_side=True must be an integer"),
+    ("median_depth", -2.0, r"metadata median_depth=-2.0 must be a finite positive number"),
+    ("median_depth", float("nan"), r"metadata median_depth=nan must be a finite positive number"),
+    ("scene", 7, r"metadata scene=7 must be a non-empty string"),
+    ("iterations", -1, r"metadata iterations=-1 must be a non-negative integer"),
+    ("focal_range", [0.9, 0.5], r"metadata focal_range=\[0.9, 0.5\] must be \[low, high\]"),
+])
+def test_map_metadata_out_of_range_is_named(tiny_map: tuple[Path, Path], tmp_path: Path, field: str, value: object,
+                                            match: str) -> None:
+    bad = rewrite(tiny_map[0], tmp_path / "bad.map.pt", lambda p: p["metadata"].__setitem__(field, value),
+                  checksum="recompute")
+    with pytest.raises(ModelError, match=match) as info:
+        read_map_header(bad)
+    assert "bad.map.pt" in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(ModelError, match=match):  # nor can such a map be written
+        encoder = Encoder(width=0.25)
+        save_map(tmp_path / "x.map.pt", Regressor(encoder, Head(in_channels=encoder.out_channels, width=8)),
+                 {field: value})
+    assert not (tmp_path / "x.map.pt").exists()
+
+
+@pytest.mark.parametrize("section, key, value, match", [
+    ("head_config", "width", -64, r"head_config width=-64 must be an integer in \[1, 65536\]"),
+    ("head_config", "homogeneous", "yes", r"head_config homogeneous='yes' must be true or false"),
+    ("encoder", "width", -1.0, r"encoder width=-1.0 must be a number in \[0, 16\]"),
+])
+def test_map_configuration_out_of_range_is_named(tiny_map: tuple[Path, Path], tmp_path: Path, section: str,
+                                                 key: str, value: object, match: str) -> None:
+    bad = rewrite(tiny_map[0], tmp_path / "bad.map.pt", lambda p: p[section].__setitem__(key, value),
+                  checksum="recompute")
+    with pytest.raises(ModelError, match=match):
+        read_map_header(bad)
+
+
+def test_negative_short_side_is_one_line_from_the_cli(tiny_map: tuple[Path, Path], tmp_path: Path,
+                                                      photo_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """It used to reach cv2.resize and end in a traceback."""
+    bad = rewrite(tiny_map[0], tmp_path / "neg.map.pt", lambda p: p["metadata"].__setitem__("short_side", -120),
+                  checksum="recompute")
+    rc = main(["localize", "--map", str(bad), "--encoder-weights", str(tiny_map[1]), "--focal", "130",
+               str(photo_file)])
+    line = one_error_line(rc, *capsys.readouterr())
+    assert "neg.map.pt" in line and "short_side=-120" in line
+
+
+def test_a_map_without_metadata_is_refused(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
+    gone = rewrite(tiny_map[0], tmp_path / "gone.map.pt", lambda p: p.pop("metadata"), checksum="recompute")
+    with pytest.raises(ModelError, match="gone.map.pt: map file has no valid 'metadata' entry"):
+        read_map_header(gone)
+    no_side = rewrite(tiny_map[0], tmp_path / "noside.map.pt", lambda p: p["metadata"].pop("short_side"),
+                      checksum="recompute")
+    read_map_header(no_side)  # a valid map file: only the relocalizer needs the working size
+    with pytest.raises(UsvcError, match=r"noside.map.pt has no metadata field 'short_side'"):
+        Relocalizer(no_side, tiny_map[1])
+
+
+# ------------------------------------------------------------------ 2. checksums and non-finite weights
+
+def test_an_intact_map_carries_a_checksum_and_loads(tiny_map: tuple[Path, Path], caplog: pytest.LogCaptureFixture
+                                                    ) -> None:
+    payload = torch.load(tiny_map[0], map_location="cpu", weights_only=True)
+    assert payload[CHECKSUM_KEY].startswith("sha256:") and len(payload[CHECKSUM_KEY]) == 7 + 64
+    assert map_checksum(payload) == payload[CHECKSUM_KEY]
+    with caplog.at_level(logging.INFO):
+        _, metadata = load_map(tiny_map[0], Relocalizer(*tiny_map).regressor.encoder)
+    assert metadata == {"short_side": SHORT_SIDE}  # the checksum is the file's, not the metadata's
+    assert "checksum" not in caplog.text
+
+
+def test_a_flipped_byte_in_the_weights_is_refused(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
+    data = bytearray(tiny_map[0].read_bytes())
+    weight = torch.load(tiny_map[0], map_location="cpu", weights_only=True)["head_state"]["fc1.weight"]
+    at = bytes(data).find(weight.reshape(-1).view(torch.uint8).numpy().tobytes()[:64])
+    assert at > 0  # the fp16 weights are stored as they are
+    data[at + 11] ^= 0x10
+    flipped = tmp_path / "flipped.map.pt"
+    flipped.write_bytes(bytes(data))
+    # torch reads the damaged file without a word: only the checksum notices
+    loaded = torch.load(flipped, map_location="cpu", weights_only=True)["head_state"]["fc1.weight"]
+    assert not torch.equal(loaded, weight)
+    with pytest.raises(ModelError, match=r"map file .*flipped.map.pt is corrupt: checksum mismatch") as info:
+        read_map_header(flipped)
+    assert "\n" not in str(info.value)
+    with pytest.raises(ModelError, match="checksum mismatch"):
+        Relocalizer(flipped, tiny_map[1])
+
+
+@pytest.mark.parametrize("checksum", ["keep", "recompute", "drop"])
+def test_non_finite_weights_are_refused(tiny_map: tuple[Path, Path], tmp_path: Path, checksum: str) -> None:
+    def poison(payload: dict) -> None:
+        payload["head_state"]["fc2.weight"][3, 5, 0, 0] = float("nan")
+
+    bad = rewrite(tiny_map[0], tmp_path / "nan.map.pt", poison, checksum=checksum)
+    with pytest.raises(ModelError, match=r"nan.map.pt is corrupt: head weight fc2.weight has non-finite values"):
+        read_map_header(bad)
+
+
+def test_a_diverged_head_is_not_saved(tmp_path: Path) -> None:
+    encoder = Encoder(width=0.25)
+    head = Head(in_channels=encoder.out_channels, width=8)
+    with torch.no_grad():
+        head.out.bias[0] = 1e6  # beyond fp16: inf once stored
+    with pytest.raises(ModelError, match=r"cannot save map: head weight out.bias has non-finite values"):
+        save_map(tmp_path / "x.map.pt", Regressor(encoder, head), {"short_side": 120})
+    assert not (tmp_path / "x.map.pt").exists()
+
+
+def test_an_old_map_without_checksum_loads_with_one_note(tiny_map: tuple[Path, Path], tmp_path: Path,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    old = rewrite(tiny_map[0], tmp_path / "old.map.pt", lambda p: None, checksum="drop")
+    with caplog.at_level(logging.WARNING):
+        reloc = Relocalizer(old, tiny_map[1])
+        read_map_header(old)
+    notes = [r for r in caplog.records if "no checksum" in r.getMessage()]
+    assert len(notes) == 1 and "old.map.pt" in notes[0].getMessage()
+    assert reloc.short_side == SHORT_SIDE
+
+
+# ------------------------------------------------------------------ 3. --max-error-px bound
+
+def test_a_huge_inlier_threshold_is_refused(tiny_map: tuple[Path, Path], photo_file: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    problems = RelocalizeOptions(max_error_px=1e9).problems()
+    assert problems == ["max_error_px=1000000000.0 must be <= 100 (px at a 480 px short side; larger thresholds "
+                        "accept any pose)"]
+    assert RelocalizeOptions(max_error_px=100.0).problems() == []
+    assert RelocalizeOptions(features_max_error_px=float("inf")).problems()
+    with pytest.raises(UsvcError, match=r"max_error_px=1000000000.0 must be <= 100"):
+        Relocalizer(*tiny_map, options=RelocalizeOptions(max_error_px=1e9))
+    line = one_error_line(*run(capsys, tiny_map, "--max-error-px", "1e9", "--focal", "130", photo_file))
+    assert r"--max-error-px 1e+09: must be in (0, 100]" in line
+
+
+# ------------------------------------------------------------------ 4. stretched photos
+
+def test_a_stretched_photo_without_intrinsics_is_refused(tiny_map: tuple[Path, Path],
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 4:3 photo squeezed to 3:4 and back: its content is a camera with fx/fy = 1.6."""
+    stretched = Camera("PINHOLE", 160, 120, (160.0, 100.0, 80.0, 60.0))
+    exactly(monkeypatch, stretched)
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), None)
+    assert not est.success and "looks stretched" in est.rejected and "fx/fy = 1.6" in est.rejected
+    assert est.to_json()["rejected"] == est.rejected
+    exactly(monkeypatch, CENTRED)  # the same scene seen with square pixels: no false alarm
+    assert Relocalizer(*tiny_map).localize(photo(160, 120), None).success
+
+
+def test_stretch_verdict_needs_clearly_more_support() -> None:
+    """The check itself: nothing to say where a square-pixel camera explains the cells."""
+    points = exact_coordinates(15, 20, CENTRED).reshape(-1, 3)
+    from usvc.model.encoder import cell_centers
+    from usvc.relocalize.pnp import estimate_focal_pose
+
+    pixels = cell_centers(15, 20, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+    found = estimate_focal_pose(pixels, points, 160, 120, 2.5)
+    assert found is not None
+    assert stretch_verdict(pixels, points, found.camera, found.R, found.t, 2.5) == ""
+
+
+def test_anisotropic_intrinsics_are_a_warning(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    given = Camera("PINHOLE", 160, 120, (170.0, 100.0, 80.0, 60.0))
+    assert any("fx/fy = 1.70" in w for w in intrinsics_warnings(given))
+    assert intrinsics_warnings(Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))) == []
+    exactly(monkeypatch, given)
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), given)
+    assert any("fx/fy = 1.70" in w for w in est.to_json()["warnings"])
+
+
+def test_an_estimated_focal_far_from_the_map_cameras_is_refused(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The map records its cameras' focal lengths over the long side (focal_range); an estimate
+    more than 3x outside it is no reading of this photo."""
+    torch.manual_seed(0)
+    encoder = Encoder(width=0.25)
+    torch.save(encoder.state_dict(), tmp_path / "encoder.pt")
+    map_path = tmp_path / "ranged.map.pt"
+    save_map(map_path, Regressor(encoder, Head(in_channels=encoder.out_channels, width=64)),
+             {"short_side": SHORT_SIDE, "focal_range": [0.8, 0.8]})
+    reloc = Relocalizer(map_path, tmp_path / "encoder.pt")
+    exactly(monkeypatch, CENTRED)  # f = 130 px: 0.81x the long side
+    assert reloc.localize(photo(160, 120), None).success
+    exactly(monkeypatch, Camera("SIMPLE_PINHOLE", 160, 120, (600.0, 80.0, 60.0)))  # 3.75x: over 0.8 x 3
+    est = reloc.localize(photo(160, 120), None)
+    assert not est.success and "is over 3x off the map's cameras' (0.80-0.80x)" in est.rejected
+    assert est.confidence == 0.0
+
+
+def test_the_train_stage_records_the_focal_range() -> None:
+    from stages.train import focal_range
+
+    K = np.array([[[900.0, 0, 272.0], [0, 900.0, 480.0], [0, 0, 1]], [[450.0, 0, 320.0], [0, 450.0, 240.0], [0, 0, 1]]])
+    assert focal_range(K) == [pytest.approx(450 / 640, abs=1e-4), pytest.approx(900 / 960, abs=1e-4)]
+    with pytest.raises(UsvcError, match="no valid intrinsics"):
+        focal_range(np.full((1, 3, 3), np.nan))
+
+
+def test_implausible_focal_lengths() -> None:
+    assert implausible_focal(130.0, 160, 120, "f") == ""
+    assert "field of view" in implausible_focal(1e9, 160, 120, "the given focal length")
+    assert "is implausible for a 160x120 photo" in implausible_focal(1e-9, 160, 120, "the given focal length")
+    assert implausible_focal(float("nan"), 160, 120, "f")
+
+
+# ------------------------------------------------------------------ 5. principal point far off the centre
+
+def test_swapped_principal_point_is_a_warning(tiny_map: tuple[Path, Path], photo_file: Path,
+                                              capsys: pytest.CaptureFixture[str],
+                                              caplog: pytest.LogCaptureFixture) -> None:
+    rc, out, err = run(capsys, tiny_map, "--camera", "PINHOLE", "130", "130", "60", "80", photo_file)
+    assert rc == 0, err
+    (record,) = records_of(out)
+    assert any("principal point (60, 80)" in w and "cx and cy look swapped" in w for w in record["warnings"])
+    assert "cx and cy look swapped" in caplog.text  # logged too
+    rc, out, err = run(capsys, tiny_map, "--camera", "PINHOLE", "130", "130", "80", "60", photo_file)
+    assert rc == 0 and "warnings" not in records_of(out)[0]
+
+
+# ------------------------------------------------------------------ 6. --format ''
+
+@pytest.mark.parametrize("fmt", ["", ",", " , "])
+def test_an_empty_format_is_refused(tiny_map: tuple[Path, Path], photo_file: Path, tmp_path: Path,
+                                    capsys: pytest.CaptureFixture[str], fmt: str) -> None:
+    out_dir = tmp_path / "out"
+    line = one_error_line(*run(capsys, tiny_map, "--focal", "130", "--out-dir", out_dir, "--format", fmt,
+                               photo_file))
+    assert "names no format; valid: " + ", ".join(FORMATS) in line
+    assert not out_dir.exists()
+
+
+# ------------------------------------------------------------------ 7. decompression bomb in a batch
+
+def header_only_png(path: Path, width: int, height: int) -> Path:
+    """A PNG whose header claims width x height: a few dozen bytes that say 400 megapixels."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8-bit grey
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def test_a_decompression_bomb_is_its_photo_failure(tiny_map: tuple[Path, Path], photo_file: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str],
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    bomb = header_only_png(tmp_path / "bomb.png", 20000, 20000)
+    assert bomb.stat().st_size < 200
+    with pytest.raises(Image.DecompressionBombError):  # what Pillow alone makes of it
+        Image.open(bomb)
+    rc, out, err = run(capsys, tiny_map, "--focal", "130", photo_file, bomb, photo_file)
+    assert rc == 1 and "Traceback" not in err
+    records = records_of(out)
+    assert [r["name"] for r in records] == [str(photo_file), str(bomb), str(photo_file)]
+    assert records[1]["success"] is False and "20000x20000" in records[1]["error"]
+    assert "error" not in records[0] and "error" not in records[2] and records[2]["cells"] == 300
+    assert len([r for r in caplog.records if "bomb.png" in r.getMessage()]) == 1  # its one failure line
+    # alone, it is the run's one error line
+    line = one_error_line(*run(capsys, tiny_map, "--focal", "130", bomb))
+    assert "bomb.png" in line and "megapixel" in line
+
+
+def test_an_undecodable_photo_in_a_batch_is_its_own_failure(tiny_map: tuple[Path, Path], photo_file: Path,
+                                                             tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    """A file whose header is not an image's: its record says so, the batch and its exports go on."""
+    garbage = tmp_path / "garbage.jpg"
+    garbage.write_bytes(b"not a jpeg at all")
+    out_dir = tmp_path / "out"
+    rc, out, err = run(capsys, tiny_map, "--focal", "130", "--out-dir", out_dir, "--format", "jsonl", garbage,
+                       photo_file)
+    assert rc == 1 and "Traceback" not in err
+    records = records_of(out)
+    assert records[0]["success"] is False and "cannot decode image" in records[0]["error"]
+    assert "error" not in records[1] and records[1]["cells"] == 300
+    assert records_of((out_dir / "queries.jsonl").read_text()) == records
+
+
+# ------------------------------------------------------------------ 8. every failure says why
+
+@pytest.mark.parametrize("focal", ["1e9", "1e-9"])
+def test_an_absurd_focal_is_a_failure_with_a_reason(tiny_map: tuple[Path, Path], photo_file: Path, focal: str,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    rc, out, err = run(capsys, tiny_map, "--focal", focal, photo_file)
+    assert rc == 0, err
+    (record,) = records_of(out)
+    assert record["success"] is False and record["confidence"] == 0.0
+    assert record["rejected"].startswith("the given focal length (") and "is implausible for a 160x120" in \
+        record["rejected"]
+
+
+def test_bool_intrinsics_are_refused(tiny_map: tuple[Path, Path]) -> None:
+    for value in (True, False, np.bool_(True), [True, 1.0, 2.0, 3.0], np.ones(4, bool)):
+        with pytest.raises(UsvcError, match="intrinsics must be"):
+            camera_from_intrinsics(value, 160, 120)  # type: ignore[arg-type]
+    with pytest.raises(UsvcError, match="a bool"):
+        Relocalizer(*tiny_map).localize(photo(160, 120), True)  # type: ignore[arg-type]
+
+
+def test_a_blank_photo_is_a_failure_with_a_reason(tiny_map: tuple[Path, Path]) -> None:
+    for intrinsics in (None, 130.0):
+        est = Relocalizer(*tiny_map).localize(np.zeros((120, 160, 3), np.uint8), intrinsics)
+        assert not est.success and est.rejected.startswith("the photo is blank")
+        assert est.to_json()["rejected"] == est.rejected and est.confidence == 0.0
+
+
+@pytest.mark.parametrize("intrinsics", [None, 130.0])
+def test_no_pose_is_a_failure_with_a_reason(tiny_map: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch,
+                                            intrinsics: float | None) -> None:
+    """Coordinates no camera explains (noise): the answer says there was no pose, and why."""
+    noise = np.random.default_rng(1).uniform(-5.0, 5.0, (15, 20, 3))
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: noise)
+    est = Relocalizer(*tiny_map).localize(photo(160, 120), intrinsics)
+    assert not est.success and est.confidence == 0.0
+    assert est.rejected, est.to_json()
+    assert any(k in est.rejected for k in ("no pose", "no camera explains", "implausible", "confidence"))
+
+
+# ------------------------------------------------------------------ 9. --out-dir that cannot be written
+
+def test_an_out_dir_under_a_file_fails_before_localizing(tiny_map: tuple[Path, Path], photo_file: Path,
+                                                         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file")
+    line = one_error_line(*run(capsys, tiny_map, "--focal", "130", "--out-dir", blocker / "out", photo_file))
+    assert f"--out-dir {blocker / 'out'}: {blocker} is a file, not a folder" in line
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root writes in read-only folders")
+def test_a_read_only_out_dir_fails_before_localizing(tiny_map: tuple[Path, Path], photo_file: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        for out_dir in (locked, locked / "sub"):
+            line = one_error_line(*run(capsys, tiny_map, "--focal", "130", "--out-dir", out_dir, photo_file))
+            assert f"--out-dir {out_dir}: cannot write in the folder" in line
+    finally:
+        locked.chmod(0o755)
+
+
+# ------------------------------------------------------------------ 10. EXIF focal lengths
+
+def exif_photo(path: Path, focal_35mm: int) -> Path:
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = focal_35mm  # FocalLengthIn35mmFilm: f = f35 / 36 * 160 px
+    Image.fromarray(photo(160, 120)).save(path, exif=exif)
+    return path
+
+
+def test_a_1mm_exif_focal_is_named_as_exif(tiny_map: tuple[Path, Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    one_mm = exif_photo(tmp_path / "one_mm.jpg", 1)
+    rc, out, err = run(capsys, tiny_map, one_mm)
+    assert rc == 0, err
+    (record,) = records_of(out)
+    assert record["intrinsics_source"] == "exif" and record["success"] is False
+    assert record["rejected"].startswith("the EXIF focal length (FocalLengthIn35mmFilm 1 mm: 4.444 px) is "
+                                         "implausible")
+    assert "check the intrinsics" not in record["rejected"] and record["rejected"].endswith(
+        "--no-exif ignores EXIF focal lengths")
+    rc, out, err = run(capsys, tiny_map, "--no-exif", one_mm)
+    assert rc == 0, err
+    assert records_of(out)[0]["intrinsics_source"] == "estimated"
+
+
+def test_an_exif_focal_the_content_contradicts_says_exif(tiny_map: tuple[Path, Path], tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    exactly(monkeypatch, CENTRED)  # the content: f = 130 px; the EXIF says 18 / 36 * 160 = 80 px
+    wrong = exif_photo(tmp_path / "wrong.jpg", 18)
+    rc, out, err = run(capsys, tiny_map, "--no-refine", wrong)
+    assert rc == 0, err
+    (record,) = records_of(out)
+    assert record["success"] is False
+    assert record["rejected"].startswith("the EXIF focal length (FocalLengthIn35mmFilm 18 mm: 80 px) disagrees with "
+                                         "the photo's content: the image implies a focal length 1.6")
+    rc, out, err = run(capsys, tiny_map, "--no-refine", "--no-exif", wrong)
+    (record,) = records_of(out)
+    assert record["success"] is True and record["intrinsics_source"] == "estimated"
+    assert record["camera"]["params"][0] == pytest.approx(130.0, rel=1e-3)
