@@ -204,7 +204,8 @@ def test_intrinsics_from_exif_else_estimated(files: dict[str, Path], batch: dict
 
 def fake_estimates(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
     """Replace Relocalizer.localize: photo i gets a known pose, except photo 1, which fails."""
-    from usvc.relocalize.relocalizer import PoseEstimate, Relocalizer
+    from usvc.relocalize.pose_estimate import PoseEstimate
+    from usvc.relocalize.relocalizer import Relocalizer
 
     given: list[Any] = []
 

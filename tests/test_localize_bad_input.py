@@ -27,11 +27,13 @@ from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
 from usvc.model.errors import ModelError
-from usvc.model.head import CHECKSUM_KEY, Head, Regressor, load_map, map_checksum, read_map_header, save_map
+from usvc.model.head import Head, Regressor, load_map, read_map_header, save_map
+from usvc.model.map_checks import CHECKSUM_KEY, map_checksum
 from usvc.relocalize.exports import FORMATS
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_input import camera_from_intrinsics
-from usvc.relocalize.relocalizer import Relocalizer, implausible_focal, intrinsics_warnings, stretch_verdict
+from usvc.relocalize.camera_checks import implausible_focal, intrinsics_warnings, stretch_verdict
+from usvc.relocalize.relocalizer import Relocalizer
 
 CENTRED = Camera("SIMPLE_PINHOLE", 160, 120, (130.0, 80.0, 60.0))
 

@@ -49,8 +49,8 @@ def repo(tmp_path_factory) -> Path:
             shutil.copy2(src, dst / rel)
     # The whole pipeline runs, with mapping cut to a few seconds: this test is about caching and
     # wiring; accuracy on the miniature scene is measured by `.ci/run`'s own `dvc repro`.
-    _set(dst / "conf/buffer/default.yaml", "size: 262144", "size: 16384")
-    _set(dst / "conf/train/default.yaml", "iterations: 6000", "iterations: 20")
+    _set(dst / "conf/buffer/default.yaml", "\nsize: 0 ", "\nsize: 16384 ")
+    _set(dst / "conf/train/default.yaml", "\niterations: 0 ", "\niterations: 20 ")
     _set(dst / "conf/train/default.yaml", "batch_size: 2048", "batch_size: 1024")
     _set(dst / "conf/gaussians/default.yaml", "iterations: 400", "iterations: 30")
     _set(dst / "conf/render/default.yaml", "views: 30", "views: 4")

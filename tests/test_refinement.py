@@ -31,8 +31,8 @@ from usvc.relocalize.refinement import (
     refine_pose,
 )
 from usvc.relocalize.relocalize_scene import write_results
+from usvc.relocalize.pose_estimate import PoseEstimate
 from usvc.relocalize.relocalizer import (
-    PoseEstimate,
     RelocalizeOptions,
     Relocalizer,
     refine_options,

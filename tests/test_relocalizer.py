@@ -24,7 +24,8 @@ from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, save_map
 from usvc.relocalize.options import BACKENDS
-from usvc.relocalize.relocalizer import PoseEstimate, RelocalizeOptions, Relocalizer
+from usvc.relocalize.pose_estimate import PoseEstimate
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
 SHORT_SIDE = 120  # the map's working resolution: 160x120 images, 20x15 cells
 WORK_CAMERA = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))

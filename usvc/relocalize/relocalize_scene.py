@@ -14,7 +14,8 @@ from usvc.core.errors import UsvcError
 from usvc.core.pose_errors import write_poses_txt
 from usvc.core.scene import Frame
 from usvc.relocalize.queries_file import refinement_summary, write_queries
-from usvc.relocalize.relocalizer import PoseEstimate, Relocalizer
+from usvc.relocalize.pose_estimate import PoseEstimate
+from usvc.relocalize.relocalizer import Relocalizer
 
 log = logging.getLogger(__name__)
 

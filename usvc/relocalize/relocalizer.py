@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
 from usvc.core.errors import UsvcError
-from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
+from usvc.core.geometry import camera_centers
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
@@ -45,6 +43,14 @@ from usvc.relocalize.pnp import (
     support_at,
 )
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.camera_checks import (
+    FOCAL_OBSERVABLE_FRACTION,
+    FOCAL_SPREAD,
+    intrinsics_warnings,
+    implausible_focal,
+    stretch_verdict,
+)
+from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
@@ -53,21 +59,10 @@ log = logging.getLogger(__name__)
 
 MIN_IMAGE_SIDE = 32
 MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
-# A pinhole focal length (px) over the photo's long side outside this range is no camera's: a
-# field of view over ~157 deg or under ~3 deg (a fisheye's pinhole focal is ~0.3, a 10x zoom ~7).
-FOCAL_RANGE = (0.1, 20.0)
-# An estimated focal length (over the long side) more than this factor outside the range of the
-# map's own cameras (metadata focal_range) is no reading of this photo: a phone's lenses span ~3x.
-FOCAL_SPREAD = 3.0
-MAX_PIXEL_ASPECT = 1.25  # fx / fy (either way) beyond this: the photo was resized to another aspect
-PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size from the centre: a warning
 # A photo below this contrast (std of its grey levels in [0, 1]) is blank: nothing to localize.
 MIN_CONTRAST = 1.0 / 255.0
 
 CAMERA_FOV = "crop"
-# The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
-# still explains this fraction of its inliers (a shallow view: distance trades for focal length).
-FOCAL_OBSERVABLE_FRACTION = 0.8
 FOCAL_UNOBSERVABLE = "unobservable"
 # The learned pose "describes" the photo when it is this close to the feature pose.
 AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5  # a distorted query is undistorted as prepare undistorts mapping images
@@ -96,172 +91,12 @@ def poses_agree(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray, 
     return angle <= AGREE_DEG and gap <= AGREE_DEPTH_FRACTION * median_depth
 
 
-def field_of_view_deg(focal: float, long_side: int) -> float:
-    return float(np.degrees(2.0 * np.arctan2(long_side / 2.0, focal)))
-
-
-def implausible_focal(focal: float, width: int, height: int, what: str) -> str:
-    """Why `focal` (px) is no camera's for a width x height photo ("" when it is plausible);
-    `what` names it, its value included."""
-    long_side = max(width, height)
-    low, high = FOCAL_RANGE
-    if np.isfinite(focal) and low * long_side <= focal <= high * long_side:
-        return ""
-    fovs = (field_of_view_deg(high * long_side, long_side), field_of_view_deg(low * long_side, long_side))
-    return (f"{what} is implausible for a {width}x{height} photo: a field of view of "
-            f"{field_of_view_deg(focal, long_side):.3g} deg across its long side, where cameras have "
-            f"{fovs[0]:.0f}-{fovs[1]:.0f} deg")
-
-
-def intrinsics_warnings(camera: Camera) -> list[str]:
-    """Doubts about intrinsics that do not stop a query: non-square pixels (fx/fy beyond
-    MAX_PIXEL_ASPECT: a photo stretched to another aspect ratio) and a principal point far from
-    the image's centre (cx and cy swapped, or intrinsics of a crop)."""
-    out = []
-    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
-    w, h = camera.width, camera.height
-    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
-        out.append(f"fx/fy = {fx / fy:.2f}: a camera's pixels are square (fx = fy), so this photo was resized to "
-                   "another aspect ratio, or the intrinsics are wrong; a stretched photo localizes poorly")
-    dx, dy = abs(cx - w / 2) / w, abs(cy - h / 2) / h
-    if max(dx, dy) > PRINCIPAL_OFFSET:
-        swapped = abs(cy - w / 2) / w <= PRINCIPAL_OFFSET and abs(cx - h / 2) / h <= PRINCIPAL_OFFSET
-        out.append(f"principal point ({cx:g}, {cy:g}) is {100 * dx:.0f} % of the width and {100 * dy:.0f} % of the "
-                   f"height off the centre of the {w}x{h} photo (cameras: a few %): "
-                   + ("cx and cy look swapped" if swapped else "intrinsics of another image or a crop?"))
-    return out
-
-
 def _focal_reason(evidence: str, ratio: float, tolerance: float, source: str) -> str:
     """Why a given focal length is refused; `source` names where it came from (e.g. EXIF)."""
     if source:
         return (f"{source} disagrees with the photo's content: {evidence} a focal length {ratio:.2f}x it "
                 f"(tolerance {tolerance:g})")
     return f"{evidence} a focal length {ratio:.2f}x the given one (tolerance {tolerance:g}); check the intrinsics"
-
-
-def _project(points: np.ndarray, rotvec: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float,
-             cy: float) -> tuple[np.ndarray, np.ndarray]:
-    from scipy.spatial.transform import Rotation
-
-    cam = points @ Rotation.from_rotvec(rotvec).as_matrix().T + t
-    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
-    return np.stack([fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy], 1), cam[:, 2]
-
-
-def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
-                    max_error_px: float) -> str:
-    """Why the photo looks stretched ("" when it does not): a pinhole camera with non-square pixels
-    (fx/fy beyond MAX_PIXEL_ASPECT), fitted with the pose from (camera, R, t), explains clearly more
-    correspondences than `camera` (square pixels) does: its inliers are at most
-    FOCAL_OBSERVABLE_FRACTION of the fitted camera's. A photo resized to another aspect ratio
-    looks like this; where the two explain about as much, the photo cannot tell and this says nothing."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    p2 = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    p3 = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    base = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
-    if base.sum() < 8:
-        return ""
-    (f0, _), (cx, cy) = camera.focal, camera.principal_point
-    x = np.concatenate([Rotation.from_matrix(R).as_rotvec(), np.asarray(t, dtype=np.float64).reshape(3), [0.0, 0.0]])
-    mask = base
-    for _ in range(3):  # fit on the inliers, re-select them, as ACE's pose refinement does
-        def residuals(v: np.ndarray, m: np.ndarray = mask) -> np.ndarray:
-            uv, _ = _project(p3[m], v[:3], v[3:6], f0 * np.exp(v[6]), f0 * np.exp(v[7]), cx, cy)
-            return (uv - p2[m]).reshape(-1)
-
-        x = least_squares(residuals, x, loss="soft_l1", f_scale=max_error_px, max_nfev=200).x
-        uv, z = _project(p3, x[:3], x[3:6], f0 * np.exp(x[6]), f0 * np.exp(x[7]), cx, cy)
-        err = np.linalg.norm(uv - p2, axis=1)
-        grown = np.isfinite(err) & (z > 0) & (err < max_error_px)
-        if grown.sum() < 8:
-            return ""
-        mask = grown
-    aspect = float(np.exp(x[6] - x[7]))
-    support, kept = int(mask.sum()), int(base.sum())
-    if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > FOCAL_OBSERVABLE_FRACTION * support:
-        return ""
-    return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
-            "of its cells as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
-            "resized to another aspect ratio? Localize the original photo, or give its intrinsics")
-
-
-def _nan_R() -> np.ndarray:
-    return np.full((3, 3), np.nan)
-
-
-def _nan_t() -> np.ndarray:
-    return np.full(3, np.nan)
-
-
-@dataclass
-class PoseEstimate:
-    """World-to-camera pose (OpenCV axes, scene units); R and t are NaN when `success` is False.
-
-    `inliers` is the dense RANSAC inlier count of the returned pose; `initial_R`/`initial_t` are
-    the dense RANSAC pose before refinement (equal to R, t when refinement did not replace it).
-    `camera` is the camera of the photo as given: the one passed in, or, when the intrinsics were
-    unknown, a SIMPLE_PINHOLE with the focal length estimated with the pose.
-    """
-
-    success: bool
-    R: np.ndarray
-    t: np.ndarray
-    inliers: int
-    cells: int
-    seconds: dict[str, float] = field(default_factory=dict)
-    initial_R: np.ndarray = field(default_factory=_nan_R)
-    initial_t: np.ndarray = field(default_factory=_nan_t)
-    refine_iterations: int = 0
-    refine_kept: bool = False
-    camera: Camera | None = None
-    focal_estimated: bool = False
-    rejected: str = ""  # why a pose RANSAC found is not trusted (low confidence, or intrinsics the map contradicts)
-    refine_method: str = "none"  # the refinement that ran: features | keypoints | none
-    refine_path: str = ""  # which evidence gave the answer: guided | global (features), keypoints, dense
-    feature_inliers: int = 0  # PnP inliers of the feature pose (refine=features), 0 when it found none
-    feature_passes: list = field(default_factory=list)  # per matching pass: kind, radius_px, candidates, matches, inliers
-    warnings: list = field(default_factory=list)  # doubts about the input that did not stop it (principal point...)
-    pose_found: bool = True  # False when no pose was found at all (confidence 0 whatever `rejected` says)
-
-    @property
-    def confidence(self) -> float:
-        """Fraction of the image's cells that agree with the pose RANSAC found (0 when it found none)."""
-        return self.inliers / self.cells if (self.success or self.rejected) and self.pose_found and self.cells \
-            else 0.0
-
-    @property
-    def center(self) -> np.ndarray:
-        return camera_centers(self.R, self.t)
-
-    def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"success": self.success, "inliers": self.inliers, "cells": self.cells,
-                               "confidence": round(self.confidence, 4),
-                               "seconds": {k: round(v, 4) for k, v in self.seconds.items()}}
-        if self.success:
-            out["q_wxyz"] = [float(v) for v in matrix_to_quat_wxyz(self.R)]
-            out["t"] = [float(v) for v in self.t]
-            out["camera_center"] = [float(v) for v in self.center]
-            out["refinement"] = {"method": self.refine_method, "path": self.refine_path,
-                                 "iterations": int(self.refine_iterations), "kept": bool(self.refine_kept),
-                                 "feature_inliers": int(self.feature_inliers),
-                                 "learned_pose_kept": self.refine_path in ("dense", "keypoints"),
-                                 "initial_q_wxyz": [float(v) for v in matrix_to_quat_wxyz(self.initial_R)]
-                                 if np.isfinite(self.initial_R).all() else None,
-                                 "initial_t": [float(v) for v in self.initial_t] if np.isfinite(self.initial_t).all()
-                                 else None,
-                                 "passes": self.feature_passes}
-        if self.rejected:
-            out["rejected"] = self.rejected
-        if self.warnings:
-            out["warnings"] = list(self.warnings)
-        if self.camera is not None:
-            c = self.camera
-            out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
-                             "params": [float(v) for v in c.params], "focal_estimated": self.focal_estimated}
-        return out
 
 
 class Relocalizer:
@@ -395,7 +230,7 @@ class Relocalizer:
             early = implausible_focal(focal, w, h, intrinsics_source or f"the given focal length ({focal:.4g} px)")
         if early:
             hw = self.working_image(gray)[0].shape
-            return PoseEstimate(False, _nan_R(), _nan_t(), 0, -(-hw[0] // 8) * -(-hw[1] // 8),
+            return PoseEstimate(False, nan_R(), nan_t(), 0, -(-hw[0] // 8) * -(-hw[1] // 8),
                                 {"total": time.perf_counter() - t0}, camera=given, focal_estimated=intrinsics is None,
                                 rejected=early, warnings=warnings, pose_found=False)
         camera = None
@@ -435,14 +270,14 @@ class Relocalizer:
         if camera is None and self.landmarks is None:
             t3 = time.perf_counter()
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
-            return PoseEstimate(False, _nan_R(), _nan_t(), 0, hc * wc, seconds, focal_estimated=True,
+            return PoseEstimate(False, nan_R(), nan_t(), 0, hc * wc, seconds, focal_estimated=True,
                                 rejected=no_focal, warnings=warnings, pose_found=False)
         if camera is not None:
             result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                                seed=self.seed, min_inliers=self.options.min_inliers,
                                backend=self.options.backend)
         else:  # no focal length from the map: features may still find the pose, with an assumed one
-            result = PnPResult(False, _nan_R(), _nan_t(), np.zeros(0, bool), 0, 0.0)
+            result = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
         rejected = ""
         if result.success and intrinsics is not None and self.options.focal_tolerance > 0 and self.landmarks is None:
             rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
@@ -495,12 +330,12 @@ class Relocalizer:
         success = (result.success or by_features) and not rejected
         pose_found = bool(result.success or by_features)
         if not success:
-            R, t = _nan_R(), _nan_t()
+            R, t = nan_R(), nan_t()
             if not rejected:  # every failure says why
                 rejected = no_focal or self._no_pose_reason(result, feature, hc * wc)
         return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
-                            initial_R=result.R.copy() if success and result.success else _nan_R(),
-                            initial_t=result.t.copy() if success and result.success else _nan_t(),
+                            initial_R=result.R.copy() if success and result.success else nan_R(),
+                            initial_t=result.t.copy() if success and result.success else nan_t(),
                             refine_iterations=iterations, refine_kept=kept or by_features, camera=given,
                             focal_estimated=intrinsics is None, rejected=rejected,
                             refine_method=self.options.refine if (self.refine or self.landmarks is not None)

@@ -1,0 +1,103 @@
+"""Checks of a query's camera that do not need the map: a focal length no camera has, non-square
+pixels or a principal point far off the centre (warnings), and a photo that looks stretched to
+another aspect ratio (a camera with non-square pixels explains its correspondences clearly better)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from usvc.core.scene import Camera
+from usvc.relocalize.pnp import reprojection_inliers
+
+# A pinhole focal length (px) over the photo's long side outside this range is no camera's: a
+# field of view over ~157 deg or under ~3 deg (a fisheye's pinhole focal is ~0.3, a 10x zoom ~7).
+FOCAL_RANGE = (0.1, 20.0)
+# An estimated focal length (over the long side) more than this factor outside the range of the
+# map's own cameras (metadata focal_range) is no reading of this photo: a phone's lenses span ~3x.
+FOCAL_SPREAD = 3.0
+MAX_PIXEL_ASPECT = 1.25  # fx / fy (either way) beyond this: the photo was resized to another aspect
+PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size from the centre: a warning
+# The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
+# still explains this fraction of its inliers (a shallow view: distance trades for focal length).
+FOCAL_OBSERVABLE_FRACTION = 0.8
+
+
+def field_of_view_deg(focal: float, long_side: int) -> float:
+    return float(np.degrees(2.0 * np.arctan2(long_side / 2.0, focal)))
+
+
+def implausible_focal(focal: float, width: int, height: int, what: str) -> str:
+    """Why `focal` (px) is no camera's for a width x height photo ("" when it is plausible);
+    `what` names it, its value included."""
+    long_side = max(width, height)
+    low, high = FOCAL_RANGE
+    if np.isfinite(focal) and low * long_side <= focal <= high * long_side:
+        return ""
+    fovs = (field_of_view_deg(high * long_side, long_side), field_of_view_deg(low * long_side, long_side))
+    return (f"{what} is implausible for a {width}x{height} photo: a field of view of "
+            f"{field_of_view_deg(focal, long_side):.3g} deg across its long side, where cameras have "
+            f"{fovs[0]:.0f}-{fovs[1]:.0f} deg")
+
+
+def intrinsics_warnings(camera: Camera) -> list[str]:
+    """Doubts about intrinsics that do not stop a query: non-square pixels (fx/fy beyond
+    MAX_PIXEL_ASPECT: a photo stretched to another aspect ratio) and a principal point far from
+    the image's centre (cx and cy swapped, or intrinsics of a crop)."""
+    out = []
+    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+    w, h = camera.width, camera.height
+    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
+        out.append(f"fx/fy = {fx / fy:.2f}: a camera's pixels are square (fx = fy), so this photo was resized to "
+                   "another aspect ratio, or the intrinsics are wrong; a stretched photo localizes poorly")
+    dx, dy = abs(cx - w / 2) / w, abs(cy - h / 2) / h
+    if max(dx, dy) > PRINCIPAL_OFFSET:
+        swapped = abs(cy - w / 2) / w <= PRINCIPAL_OFFSET and abs(cx - h / 2) / h <= PRINCIPAL_OFFSET
+        out.append(f"principal point ({cx:g}, {cy:g}) is {100 * dx:.0f} % of the width and {100 * dy:.0f} % of the "
+                   f"height off the centre of the {w}x{h} photo (cameras: a few %): "
+                   + ("cx and cy look swapped" if swapped else "intrinsics of another image or a crop?"))
+    return out
+
+
+def _project(points: np.ndarray, rotvec: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float,
+             cy: float) -> tuple[np.ndarray, np.ndarray]:
+    cam = points @ Rotation.from_rotvec(rotvec).as_matrix().T + t
+    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
+    return np.stack([fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy], 1), cam[:, 2]
+
+
+def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
+                    max_error_px: float) -> str:
+    """Why the photo looks stretched ("" when it does not): a pinhole camera with non-square pixels
+    (fx/fy beyond MAX_PIXEL_ASPECT), fitted with the pose from (camera, R, t), explains clearly more
+    correspondences than `camera` (square pixels) does: its inliers are at most
+    FOCAL_OBSERVABLE_FRACTION of the fitted camera's. A photo resized to another aspect ratio
+    looks like this; where the two explain about as much, the photo cannot tell and this says nothing."""
+    p2 = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    p3 = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    base = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
+    if base.sum() < 8:
+        return ""
+    (f0, _), (cx, cy) = camera.focal, camera.principal_point
+    x = np.concatenate([Rotation.from_matrix(R).as_rotvec(), np.asarray(t, dtype=np.float64).reshape(3), [0.0, 0.0]])
+    mask = base
+    for _ in range(3):  # fit on the inliers, re-select them, as ACE's pose refinement does
+        def residuals(v: np.ndarray, m: np.ndarray = mask) -> np.ndarray:
+            uv, _ = _project(p3[m], v[:3], v[3:6], f0 * np.exp(v[6]), f0 * np.exp(v[7]), cx, cy)
+            return (uv - p2[m]).reshape(-1)
+
+        x = least_squares(residuals, x, loss="soft_l1", f_scale=max_error_px, max_nfev=200).x
+        uv, z = _project(p3, x[:3], x[3:6], f0 * np.exp(x[6]), f0 * np.exp(x[7]), cx, cy)
+        err = np.linalg.norm(uv - p2, axis=1)
+        grown = np.isfinite(err) & (z > 0) & (err < max_error_px)
+        if grown.sum() < 8:
+            return ""
+        mask = grown
+    aspect = float(np.exp(x[6] - x[7]))
+    support, kept = int(mask.sum()), int(base.sum())
+    if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > FOCAL_OBSERVABLE_FRACTION * support:
+        return ""
+    return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
+            "of its cells as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
+            "resized to another aspect ratio? Localize the original photo, or give its intrinsics")
