@@ -246,3 +246,24 @@ def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthet
         assert not est.success and "focal length" in est.rejected, (factor, est.rejected)
         assert np.isnan(est.R).all()
     assert reloc.localize(photo(), (fx * 1.1, fy * 1.1, cx, cy)).rejected == ""  # within the 25 % tolerance
+
+
+def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretched_photo(
+        tmp_path: Path, synthetic_query, monkeypatch):
+    """No intrinsics: the photo's matches to every landmark give the focal length (P4Pf), and a
+    photo stretched to another aspect ratio (keypoints 1.5x wider about the centre) is refused
+    by what those matches say, not answered with a pose tens of degrees off."""
+    landmarks, feats = scene()
+    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
+             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    est = reloc.localize(photo(), None)
+    assert est.success and est.refine_path == "guided" and est.focal_estimated
+    assert abs(est.camera.params[0] / CAM.focal[0] - 1.0) < 0.25  # the features' focal, not the 1.2 x side prior
+    cx = CAM.principal_point[0]
+    wide = QueryFeatures(np.c_[cx + 1.5 * (feats.uv[:, 0] - cx), feats.uv[:, 1]], feats.descriptor)
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: wide)
+    est = reloc.localize(photo(), None)
+    assert not est.success and "looks stretched" in est.rejected and np.isnan(est.R).all()

@@ -99,5 +99,5 @@ def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: n
     if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > FOCAL_OBSERVABLE_FRACTION * support:
         return ""
     return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
-            "of its cells as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
+            "of its correspondences as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
             "resized to another aspect ratio? Localize the original photo, or give its intrinsics")

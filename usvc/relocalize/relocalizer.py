@@ -299,8 +299,10 @@ class Relocalizer:
             if full_camera is None:  # COLMAP's prior for a photo without calibration
                 full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
                 given = full_camera
-            feature, feature_rejected = self._features(full_gray, full_camera, result, intrinsics is not None,
-                                                       intrinsics_source)
+            feature, feature_rejected, full_camera = self._features(full_gray, full_camera, result,
+                                                                    intrinsics is not None, intrinsics_source)
+            if intrinsics is None and feature.success and not feature_rejected:
+                given = full_camera  # the focal length the features estimated with the pose
             if feature_rejected == FOCAL_UNOBSERVABLE:
                 # The features cannot tell: the map's coordinates decide, at a wider tolerance since
                 # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails),
@@ -353,10 +355,14 @@ class Relocalizer:
         return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
 
     def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool,
-                  source: str = "") -> tuple[FeatureResult, str]:
+                  source: str = "") -> tuple[FeatureResult, str, Camera]:
         """Refinement by features on the undistorted photo (resized to the mapping images' short
-        side when larger) from the dense pose; returns the result and why it is not trusted ("")."""
+        side when larger) from the dense pose; returns the result, why it is not trusted ("") and
+        the camera it used, at the photo's size. Without given intrinsics (`check_focal` False) the
+        focal length comes from the photo's matches to every landmark (P4Pf) where they give one,
+        and those matches also tell whether the photo was stretched to another aspect ratio."""
         assert self.landmarks is not None
+        full = camera
         short = min(gray01.shape)
         if short > self.landmarks.image_short_side:
             gray01, _ = resize_to_short_side(gray01, self.landmarks.image_short_side)
@@ -365,11 +371,22 @@ class Relocalizer:
                              self.options.features_max_keypoints, self.options.features_extractor)
         opts = feature_options(self.options, min(gray01.shape))
         prior = (dense.R, dense.t) if dense.success else (None, None)
+        if not check_focal:
+            li, ki = global_matches(self._landmark_desc, feats, opts.ratio)
+            uv, xyz = feats.uv[ki], self.landmarks.xyz[li]
+            fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+            if fp is not None and int(fp.inlier_mask.sum()) >= opts.min_inliers:
+                stretched = stretch_verdict(uv, xyz, fp.camera, fp.R, fp.t, opts.max_error_px)
+                if stretched:
+                    return FeatureResult(None, None), stretched, full
+                camera = fp.camera
+                full = camera.scaled(full.width, full.height)
+                prior = (fp.R, fp.t) if prior[0] is None else prior
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
-            return found, ""
-        return found, self._feature_focal_verdict(feats, camera, opts, source)
+            return found, "", full
+        return found, self._feature_focal_verdict(feats, camera, opts, source), full
 
     def _feature_focal_verdict(self, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
                                source: str = "") -> str:
