@@ -58,7 +58,7 @@ def test_map_adds_photos_config_and_params_entry(checkout: Path, photos: Path, m
     assert scene | {"defaults": None} == {"defaults": None, "name": "kitchen", "format": "images",
                                           "path": "data/raw/kitchen", "split": "every_nth", "split_n": 8,
                                           "metric_scale": None, "working_width": 640, "undistort_fov": "crop",
-                                          "generated": False}
+                                          "generated": False, "exif_focal": True}
 
 
 @pytest.mark.parametrize("name, fmt, message", [

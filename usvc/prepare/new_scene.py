@@ -77,7 +77,8 @@ def find_checkout(start: Path) -> Path:
 def _scene_yaml(source: Path, opts: NewSceneOptions) -> str:
     scale = "null" if opts.metric_scale is None else repr(float(opts.metric_scale))
     where = str(source).encode("unicode_escape").decode("ascii")  # a newline in a folder name ends no comment
-    exif = "" if opts.exif_focal else "exif_focal: false      # `usvc map --no-exif`: SfM estimates the focal length\n"
+    exif = "exif_focal: true\n" if opts.exif_focal else \
+        "exif_focal: false      # `usvc map --no-exif`: SfM estimates the focal length\n"
     return (f"# Added by `usvc map` from {where}\n"
             "defaults:\n  - base_scene\n  - _self_\n"
             f"name: {opts.name}\nformat: {opts.format}\npath: data/raw/{opts.name}\n"
