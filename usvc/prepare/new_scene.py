@@ -18,18 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import keyword
 import logging
 import math
 import os
 import re
 import shutil
-import signal
 import stat
 import subprocess
 import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +35,7 @@ import yaml
 from usvc.core.errors import UsvcError
 from usvc.prepare.importers import FORMATS, import_scene
 from usvc.prepare.options import MAX_WORKING_WIDTH, MIN_WORKING_WIDTH
+from usvc.prepare.registration_guards import SignalGuard, checkout_lock
 
 log = logging.getLogger(__name__)
 
@@ -267,72 +265,6 @@ def _check_writable(checkout: Path) -> None:
 
 # ---------------------------------------------------------------- phase 2: atomic registration
 
-@contextlib.contextmanager
-def _checkout_lock(checkout: Path) -> Iterator[None]:
-    """An exclusive flock on ``<checkout>/.usvc-map.lock`` (released by the kernel even if the process
-    is killed); a second `usvc map` waits for it. The file is removed on release."""
-    path = checkout / LOCK_FILE
-    while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as e:
-            raise UsvcError(f"cannot create the lock {path} ({e.strerror})") from None
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                log.info("another `usvc map` is adding a scene to %s: waiting for it", checkout)
-                fcntl.flock(fd, fcntl.LOCK_EX)
-            try:  # the holder before us may have removed the file: then lock the new one
-                current = os.stat(path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                current = False
-        except BaseException:
-            os.close(fd)
-            raise
-        if current:
-            break
-        os.close(fd)
-    try:
-        yield
-    finally:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
-        os.close(fd)
-
-
-class _SignalGuard:
-    """While registering: SIGTERM and SIGHUP raise KeyboardInterrupt like Ctrl-C does, so they are
-    undone the same way; once undoing (``disarm``), further signals are only noted, so that a second
-    Ctrl-C cannot leave the undo half done. A no-op off the main thread (signals go to it only)."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-    def __init__(self) -> None:
-        self.armed = True
-        self.old: dict[int, object] = {}
-
-    def _handle(self, signum: int, frame: object) -> None:
-        if self.armed:
-            self.armed = False
-            raise KeyboardInterrupt(signal.Signals(signum).name)
-        log.warning("%s while undoing: finishing the undo first", signal.Signals(signum).name)
-
-    def disarm(self) -> None:
-        self.armed = False
-
-    def __enter__(self) -> _SignalGuard:
-        if threading.current_thread() is threading.main_thread():
-            for s in self.SIGNALS:
-                if signal.getsignal(s) is not signal.SIG_IGN:  # an ignored signal (nohup) stays ignored
-                    self.old[s] = signal.signal(s, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for s, old in self.old.items():
-            signal.signal(s, old if old is not None else signal.SIG_DFL)
-
-
 def _copy_tree(src: Path, dst: Path, tree: tuple[list[Path], list[Path]] | None = None) -> None:
     """Hard links where the file system allows them (no second copy of the photos), else copies."""
     dirs, files = _scan_tree(src) if tree is None else tree
@@ -363,7 +295,7 @@ def _register(source: Path, checkout: Path, opts: NewSceneOptions, tree: tuple[l
     created = [d for d in (checkout / "data", checkout / "data" / "raw") if not d.exists()]
     old_params = params.read_text()
     placed: list[Path] = []
-    with _SignalGuard() as guard:
+    with SignalGuard() as guard:
         try:
             raw.parent.mkdir(parents=True, exist_ok=True)
             _copy_tree(source, raw_tmp, tree)
@@ -433,7 +365,7 @@ def add_scene(source: Path, checkout: Path, opts: NewSceneOptions) -> dict:
                          opts.exif_focal)
     _check_photos(scene, source, opts)
     _check_writable(checkout)
-    with _checkout_lock(checkout):
+    with checkout_lock(checkout, LOCK_FILE):
         _check_free(opts.name, checkout)  # again: another `usvc map` may have taken it meanwhile
         _register(source, checkout, opts, tree)
     n_query = sum(f.split == "test" for f in scene.frames)

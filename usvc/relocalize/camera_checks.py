@@ -9,7 +9,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from usvc.core.scene import Camera
-from usvc.relocalize.pnp import reprojection_inliers
+from usvc.relocalize.pnp import project_points, reprojection_inliers
 
 # A pinhole focal length (px) over the photo's long side outside this range is no camera's: a
 # field of view over ~157 deg or under ~3 deg (a fisheye's pinhole focal is ~0.3, a 10x zoom ~7).
@@ -60,11 +60,12 @@ def intrinsics_warnings(camera: Camera) -> list[str]:
     return out
 
 
-def _project(points: np.ndarray, rotvec: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float,
-             cy: float) -> tuple[np.ndarray, np.ndarray]:
-    cam = points @ Rotation.from_rotvec(rotvec).as_matrix().T + t
-    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
-    return np.stack([fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy], 1), cam[:, 2]
+def _project(points: np.ndarray, x: np.ndarray, f0: float, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels and depths of `points` under x = (rotation vector, t, log fx/f0, log fy/f0)."""
+    fx, fy = f0 * np.exp(x[6]), f0 * np.exp(x[7])
+    (cx, cy), w, h = camera.principal_point, camera.width, camera.height
+    return project_points(Camera("PINHOLE", w, h, (fx, fy, cx, cy)), points,
+                          Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
 
 
 def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
@@ -79,16 +80,16 @@ def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: n
     base = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
     if base.sum() < 8:
         return ""
-    (f0, _), (cx, cy) = camera.focal, camera.principal_point
+    f0 = camera.focal[0]
     x = np.concatenate([Rotation.from_matrix(R).as_rotvec(), np.asarray(t, dtype=np.float64).reshape(3), [0.0, 0.0]])
     mask = base
     for _ in range(3):  # fit on the inliers, re-select them, as ACE's pose refinement does
         def residuals(v: np.ndarray, m: np.ndarray = mask) -> np.ndarray:
-            uv, _ = _project(p3[m], v[:3], v[3:6], f0 * np.exp(v[6]), f0 * np.exp(v[7]), cx, cy)
-            return (uv - p2[m]).reshape(-1)
+            uv, _ = _project(p3[m], v, f0, camera)
+            return np.nan_to_num(uv - p2[m], nan=1e6, posinf=1e6, neginf=-1e6).reshape(-1)  # a point at z = 0
 
         x = least_squares(residuals, x, loss="soft_l1", f_scale=max_error_px, max_nfev=200).x
-        uv, z = _project(p3, x[:3], x[3:6], f0 * np.exp(x[6]), f0 * np.exp(x[7]), cx, cy)
+        uv, z = _project(p3, x, f0, camera)
         err = np.linalg.norm(uv - p2, axis=1)
         grown = np.isfinite(err) & (z > 0) & (err < max_error_px)
         if grown.sum() < 8:
