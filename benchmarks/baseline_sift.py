@@ -28,14 +28,14 @@ sys.path.insert(0, str(REPO))
 from _report import write_report  # noqa: E402
 
 from usvc.analysis.baseline_sift import sift_pnp_baseline  # noqa: E402
-from usvc.core.scene_io import IMAGE_DIR, read_scene_h5  # noqa: E402
+from usvc.core.scene_file import IMAGE_DIR, read_scene_h5  # noqa: E402
 from usvc.metrics.evaluate import evaluate_poses  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.logs import script_logging  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.relocalize.queries_file import QueryStats  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.sfm import SfmOptions  # noqa: E402
+from usvc.sfm.reconstruction import SfmOptions  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402
 
 

@@ -39,7 +39,7 @@ from _report import scene_of, write_report  # noqa: E402
 from usvc.core.exif import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
-from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
-from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402

@@ -37,7 +37,7 @@ from usvc.core.pose_errors import (  # noqa: E402
     translation_error,
 )
 from usvc.core.scene import Frame  # noqa: E402
-from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.metrics.alignment import align_and_compare  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402

@@ -23,10 +23,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _report import write_report  # noqa: E402
 
-from usvc.core.scene_io import read_scene_h5  # noqa: E402
+from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.gaussians.fit import image_loss, load_fit_images  # noqa: E402
 from usvc.splat.gsplat_backend import gsplat_available, render_gsplat  # noqa: E402
-from usvc.splat.ply_io import read_splat_ply  # noqa: E402
+from usvc.splat.ply_file import read_splat_ply  # noqa: E402
 from usvc.splat.rasterize import _bin_tiles, project, render  # noqa: E402
 
 

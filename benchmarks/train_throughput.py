@@ -45,7 +45,7 @@ from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.tracks import read_tracks  # noqa: E402
-from usvc.train.train_head import TrainOptions, train_head  # noqa: E402
+from usvc.train.trainer import TrainOptions, train_head  # noqa: E402
 
 
 def matmul_gflops(rows: int, width: int, repeats: int = 300, dtype: torch.dtype = torch.float32) -> float:

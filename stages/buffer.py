@@ -15,13 +15,13 @@ from usvc.buffer.build import (
     write_buffer,
 )
 from usvc.core.atomic import atomic_dir
-from usvc.core.scene_io import read_depth, read_scene_h5
+from usvc.core.scene_file import read_depth, read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.model.encoder import encoder_fingerprint
 from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
-from usvc.render.render_io import read_rendered_views
+from usvc.render.views_file import read_rendered_views
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")

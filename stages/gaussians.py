@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.gaussians.fit import fit_gaussians, load_fit_images, split_holdout
 from usvc.gaussians.stage_fit import (
     initial_gaussians,
@@ -25,7 +25,7 @@ from usvc.pipeline.stage import (
     stage_outputs,
 )
 from usvc.sfm.tracks import read_tracks
-from usvc.splat.ply_io import write_splat_ply
+from usvc.splat.ply_file import write_splat_ply
 from usvc.splat.rasterize import render
 
 log = logging.getLogger("usvc")

@@ -7,7 +7,7 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.core.ply import write_points_ply
+from usvc.core.points_file import write_points_ply
 from usvc.keypoints.keypoints_file import write_keypoints
 from usvc.keypoints.scoring import keypoint_stats, select_keypoints
 from usvc.pipeline.config import group_options, register_configs

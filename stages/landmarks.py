@@ -8,7 +8,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.landmarks.build import build_landmarks, landmark_stats
 from usvc.landmarks.landmarks_file import LANDMARKS_FILE, write_landmarks
 from usvc.pipeline.config import group_options, register_configs

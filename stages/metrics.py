@@ -8,7 +8,7 @@ from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
 from usvc.core.pose_errors import read_poses_txt
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.metrics.evaluate import (
     HEADLINE_FILE,
     PER_QUERY_COLUMNS,

@@ -12,7 +12,7 @@ from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, stage_main, stage_outputs
 from usvc.prepare.importers import load_scene
 from usvc.prepare.importers.photos import skipped_entries
-from usvc.prepare.prepare import prepare_scene
+from usvc.prepare.working_images import prepare_scene
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -8,7 +8,7 @@ from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.landmarks.landmarks_file import LANDMARKS_FILE
 from usvc.model.head import read_map_header
 from usvc.pipeline.config import group_options, register_configs

@@ -7,7 +7,7 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.metrics_file import write_json
@@ -19,8 +19,8 @@ from usvc.pipeline.stage import (
     stage_outputs,
 )
 from usvc.render.novel_views import render_novel_views
-from usvc.render.render_io import write_rendered_views
-from usvc.splat.ply_io import read_splat_ply
+from usvc.render.views_file import write_rendered_views
+from usvc.splat.ply_file import read_splat_ply
 
 log = logging.getLogger("usvc")
 register_configs()

@@ -9,12 +9,12 @@ import hydra
 from omegaconf import DictConfig
 
 from usvc.core.atomic import atomic_dir
-from usvc.core.ply import write_points_ply
-from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
+from usvc.core.points_file import write_points_ply
+from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.pipeline.config import group_options, register_configs
 from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
-from usvc.sfm.sfm import reconstruct
+from usvc.sfm.reconstruction import reconstruct
 from usvc.sfm.tracks import from_reconstruction, sfm_stats, write_tracks
 
 log = logging.getLogger("usvc")

@@ -16,7 +16,7 @@ from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.stage import peak_memory_mb, scene_paths, stage_main, stage_outputs
 from usvc.sfm.median_depth import median_scene_depth
 from usvc.sfm.tracks import read_tracks
-from usvc.train.train_head import train_head
+from usvc.train.trainer import train_head
 from usvc.weights import load_configured_encoder
 
 log = logging.getLogger("usvc")

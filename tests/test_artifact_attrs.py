@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from usvc.landmarks.landmarks import Landmarks
+from usvc.landmarks.landmark_table import Landmarks
 from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.buffer.build import TrainingBuffer, write_buffer
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_io import write_scene_h5
+from usvc.core.scene_file import write_scene_h5
 from usvc.keypoints.keypoints_file import Keypoints, write_keypoints
 from usvc.relocalize.relocalize_scene import write_results
 from usvc.relocalize.pose_estimate import PoseEstimate
 from usvc.render.novel_views import NovelView
-from usvc.render.render_io import write_rendered_views
+from usvc.render.views_file import write_rendered_views
 from usvc.sfm.tracks import Tracks, write_tracks
 
 DOC = REPO / "docs" / "artifacts.md"

@@ -19,13 +19,13 @@ from usvc.buffer.build import (
 )
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera, Frame
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.generate.params import RoomParams
 from usvc.generate.writer import generate_scene
 from usvc.model.encoder import Encoder
 from usvc.model.preprocess import normalise
 from usvc.prepare.importers import load_scene
-from usvc.prepare.prepare import prepare_scene
+from usvc.prepare.working_images import prepare_scene
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,7 @@ def test_distorted_camera_is_rejected(encoder, tmp_path):
 def _keypoints_on_surface(prepared, frames, n=60, seed=0):
     """Surface points back-projected from frame 0's depth: frame 0 observes them in its 'track';
     the other frames can only see them through depth visibility. Plus points hidden behind walls."""
-    from usvc.core.scene_io import read_depth
+    from usvc.core.scene_file import read_depth
     from usvc.keypoints.keypoints_file import SceneKeypoints
 
     rng = np.random.default_rng(seed)
@@ -129,7 +129,7 @@ def _keypoints_on_surface(prepared, frames, n=60, seed=0):
 
 
 def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, encoder, tmp_path):
-    from usvc.core.scene_io import read_depth
+    from usvc.core.scene_file import read_depth
 
     frames = read_scene_h5(scene).split("train")
     kp, n = _keypoints_on_surface(scene, frames)

@@ -19,7 +19,7 @@ from test_refinement import CAM, KEYPOINTS, R_TRUE, T_TRUE, backproject, errors,
 
 from usvc.core.errors import UsvcError
 from usvc.landmarks.build import build_landmarks
-from usvc.landmarks.landmarks import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import LANDMARKS_FILE, landmarks_disagree, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import relocalizer as relocalizer_module

@@ -8,7 +8,7 @@ import pytest
 
 from usvc.buffer.build import read_buffer, read_buffer_attrs
 from usvc.core.errors import UsvcError
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.sfm.tracks import read_tracks
 

@@ -23,9 +23,9 @@ from usvc.core.exif import MAX_IMAGE_PIXELS, apply_orientation, oriented_size, r
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.undistort import MIN_KEPT_SIDE, check_distortion, undistorted_camera
 from usvc.metrics.alignment import align_and_compare
-from usvc.prepare.prepare import prepare_scene
+from usvc.prepare.working_images import prepare_scene
 from usvc.sfm.pose_check import pose_agreement, poses_disagree, warn_if_poses_disagree
-from usvc.sfm.sfm import _register_images
+from usvc.sfm.reconstruction import _register_images
 
 REPO = Path(__file__).resolve().parents[1]
 

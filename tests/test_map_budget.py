@@ -13,9 +13,9 @@ from usvc.buffer.build import fill_buffer
 from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
 from usvc.core.options import check
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.train.options import TrainOptions
-from usvc.train.train_head import train_head
+from usvc.train.trainer import train_head
 
 
 def test_default_budget_keeps_small_scenes_and_grows_with_photos():

@@ -24,7 +24,7 @@ from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.pose_errors import write_poses_txt
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_io import write_scene_h5
+from usvc.core.scene_file import write_scene_h5
 from usvc.metrics.evaluate import (
     HEADLINE_KEYS_METRIC,
     HEADLINE_KEYS_RELATIVE,

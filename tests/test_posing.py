@@ -14,11 +14,11 @@ from test_exif import photo
 
 from usvc.core.errors import SceneError, SfmError, UsvcError
 from usvc.core.scene import Camera, Frame
-from usvc.core.scene_io import read_scene_h5
+from usvc.core.scene_file import read_scene_h5
 from usvc.metrics.alignment import align_and_compare
 from usvc.prepare.importers import load_scene
-from usvc.prepare.prepare import prepare_scene
-from usvc.sfm.sfm import SfmOptions
+from usvc.prepare.working_images import prepare_scene
+from usvc.sfm.reconstruction import SfmOptions
 
 OPTS = SfmOptions(max_num_features=4096, matching="auto", exhaustive_max_images=150, sequential_overlap=10,
                   pose_pairs_per_image=20, reconstruction="auto", min_points=100, num_threads=-1, seed=0)

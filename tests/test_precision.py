@@ -17,7 +17,7 @@ from usvc.core import precision as prec
 from usvc.model.head import Head
 from usvc.pipeline.config import ConfigError, compose_for_script, validate
 from usvc.train.reprojection_loss import reprojection_loss
-from usvc.train.train_head import TrainOptions, heldout_fit, train_head
+from usvc.train.trainer import TrainOptions, heldout_fit, train_head
 
 REPO = Path(__file__).resolve().parents[1]
 PROBE = prec.cpu_bf16_speedup  # the cached function itself, whatever a test patches in its place

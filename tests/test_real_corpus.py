@@ -8,7 +8,7 @@ import pytest
 
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_io import IMAGE_DIR, write_scene_h5
+from usvc.core.scene_file import IMAGE_DIR, write_scene_h5
 from usvc.pretrain.pretrain import PretrainOptions, contrastive_loss, pair_frames
 from usvc.pretrain.real_corpus import (
     LABEL_RADIUS_PX,

@@ -8,10 +8,10 @@ from conftest import shared_scene
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
+from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.prepare.importers import load_scene
-from usvc.prepare.prepare import prepare_scene
-from usvc.sfm.sfm import SfmOptions, pose_pairs, reconstruct
+from usvc.prepare.working_images import prepare_scene
+from usvc.sfm.reconstruction import SfmOptions, pose_pairs, reconstruct
 from usvc.sfm.tracks import from_reconstruction, read_tracks, sfm_stats, write_tracks
 
 OPTS = SfmOptions(max_num_features=4096, matching="auto", exhaustive_max_images=150, sequential_overlap=10,
@@ -103,8 +103,8 @@ def small_mini(tmp_path_factory):
 _RECONSTRUCT = """
 import sys
 from pathlib import Path
-from usvc.core.scene_io import IMAGE_DIR, read_scene_h5
-from usvc.sfm.sfm import SfmOptions, reconstruct
+from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
+from usvc.sfm.reconstruction import SfmOptions, reconstruct
 from usvc.sfm.tracks import from_reconstruction, write_tracks
 prepared, work = Path(sys.argv[1]), Path(sys.argv[2])
 opts = SfmOptions(**eval(sys.argv[3]))
@@ -118,7 +118,7 @@ def test_same_config_gives_identical_tracks(small_mini, tmp_path):
     """Two runs of SfM, each in a fresh process as every stage runs, give the same bits.
 
     With threaded matching this failed now and then in full test runs (3,214-3,235 points of
-    3,235), never when run alone; matching now runs on one thread (usvc/sfm/sfm.py)."""
+    3,235), never when run alone; matching now runs on one thread (usvc/sfm/reconstruction.py)."""
     import subprocess
     import sys
 
@@ -192,7 +192,7 @@ def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
     from dataclasses import replace
 
     from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
-    from usvc.sfm.sfm import extract, match
+    from usvc.sfm.reconstruction import extract, match
 
     frames = read_scene_h5(small_mini).split("train")
     db = tmp_path / "database.db"

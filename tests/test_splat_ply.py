@@ -4,9 +4,9 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from usvc.core.errors import UsvcError
-from usvc.splat import ply_io
+from usvc.splat import ply_file
 from usvc.splat.gaussians import Gaussians
-from usvc.splat.ply_io import read_splat_ply, splat_property_names, write_splat_ply
+from usvc.splat.ply_file import read_splat_ply, splat_property_names, write_splat_ply
 from usvc.splat.sh import C0, dc_to_rgb
 
 N = 7
@@ -166,7 +166,7 @@ def test_failure_mid_write_keeps_old_file(tmp_path, monkeypatch):
             f.write(b"ply\nformat binary_little_endian 1.0\n")
         raise OSError("disk full")
 
-    monkeypatch.setattr(ply_io.PlyData, "write", half_write)
+    monkeypatch.setattr(ply_file.PlyData, "write", half_write)
     with pytest.raises(UsvcError, match="disk full"):
         write_splat_ply(path, random_gaussians(3))
     assert path.read_bytes() == before

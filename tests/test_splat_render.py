@@ -19,7 +19,7 @@ from usvc.gaussians.options import GaussiansOptions
 from usvc.render.novel_views import orbit_pose, visible_keypoints
 from usvc.render.novel_views import project as project_np
 from usvc.splat.gaussians import PARAM_NAMES, Gaussians, covariances, from_points
-from usvc.splat.ply_io import read_splat_ply, write_splat_ply
+from usvc.splat.ply_file import read_splat_ply, write_splat_ply
 from usvc.splat.rasterize import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -239,7 +239,7 @@ def _frames_and_keypoints(tmp_path):
 def test_novel_views_round_trip_through_the_render_artifact(tmp_path):
     from usvc.render.novel_views import render_novel_views
     from usvc.render.options import RenderOptions
-    from usvc.render.render_io import read_rendered_views, write_rendered_views
+    from usvc.render.views_file import read_rendered_views, write_rendered_views
 
     g, frames, kp = _frames_and_keypoints(tmp_path)
     opts = RenderOptions(views=4, max_angle_deg=10, cluster_radius_rel=0.5, min_cluster_keypoints=5,
@@ -266,7 +266,7 @@ def test_clear_errors_for_missing_inputs(tmp_path):
     from usvc.gaussians.fit import load_fit_images
     from usvc.render.novel_views import render_novel_views
     from usvc.render.options import RenderOptions
-    from usvc.render.render_io import read_rendered_views
+    from usvc.render.views_file import read_rendered_views
 
     with pytest.raises(UsvcError, match="run the render stage"):
         read_rendered_views(tmp_path / "nothing")

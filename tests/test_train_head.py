@@ -11,7 +11,7 @@ from usvc.buffer.build import TrainingBuffer
 from usvc.core.errors import UsvcError
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief
-from usvc.train.train_head import TrainOptions, mapping_center, train_head
+from usvc.train.trainer import TrainOptions, mapping_center, train_head
 
 
 def test_flat_head_equals_conv_head():

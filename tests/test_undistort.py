@@ -22,7 +22,7 @@ from usvc.analysis.distorted_scene import (
 )
 from usvc.core.errors import SceneError
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_io import read_scene_h5, read_source_cameras
+from usvc.core.scene_file import read_scene_h5, read_source_cameras
 from usvc.core.undistort import (
     distort_pinhole,
     resample,
@@ -32,7 +32,7 @@ from usvc.core.undistort import (
     valid_mask,
 )
 from usvc.prepare.importers import load_scene
-from usvc.prepare.prepare import prepare_scene
+from usvc.prepare.working_images import prepare_scene
 
 PINHOLE = Camera("PINHOLE", 160, 120, (150.0, 150.0, 80.0, 60.0))
 DISTORTED = {

@@ -24,7 +24,7 @@ import pycolmap
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame, Scene
 from usvc.sfm.posing import register_query
-from usvc.sfm.sfm import (
+from usvc.sfm.reconstruction import (
     SfmOptions,
     _pipeline_options,
     _posed_reconstruction,

@@ -22,7 +22,7 @@ from usvc.buffer.augment import augment
 from usvc.buffer.keypoint_obs import sample_features, view_observations
 from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Frame

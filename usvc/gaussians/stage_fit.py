@@ -10,7 +10,7 @@ import torch
 from usvc.gaussians.fit import FitImage
 from usvc.sfm.tracks import Tracks
 from usvc.splat.gaussians import Gaussians, from_points
-from usvc.splat.ply_io import read_splat_ply
+from usvc.splat.ply_file import read_splat_ply
 from usvc.splat.rasterize import render
 
 

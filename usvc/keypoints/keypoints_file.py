@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from usvc.core.errors import KeypointError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.sfm.tracks import IMAGES_SCHEMA, PIXELS, Tracks, write_images_group
 
 KEYPOINTS_FORMAT, KEYPOINTS_VERSION = "usvc-keypoints", 1

@@ -8,7 +8,7 @@ import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-from usvc.landmarks.landmarks import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.options import LandmarksOptions
 from usvc.sfm.tracks import Tracks
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import Field, read_h5, write_h5
-from usvc.landmarks.landmarks import Landmarks
+from usvc.core.h5_file import Field, read_h5, write_h5
+from usvc.landmarks.landmark_table import Landmarks
 
 LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 1
 LANDMARKS_FILE = "landmarks.h5"

@@ -231,7 +231,7 @@ def _scan_tree(source: Path) -> tuple[list[Path], list[Path]]:
 def _check_photos(scene, source: Path, opts: NewSceneOptions) -> None:
     """Enough photos to map and to query, each readable and decodable in full."""
     from usvc.core.exif import read_image_bgr
-    from usvc.sfm.sfm import MIN_MAPPING_IMAGES
+    from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES
 
     n = len(scene.frames)
     n_query = sum(f.split == "test" for f in scene.frames)

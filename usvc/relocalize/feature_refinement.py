@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
-from usvc.landmarks.landmarks import Landmarks
+from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.pnp import project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 

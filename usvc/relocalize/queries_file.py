@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 
 QUERIES_FORMAT, QUERIES_VERSION = "usvc-queries", 1
 

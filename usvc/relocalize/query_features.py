@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from usvc.landmarks.landmarks import unit_descriptors
+from usvc.landmarks.landmark_table import unit_descriptors
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
-from usvc.landmarks.landmarks import Landmarks, unit_descriptors
+from usvc.landmarks.landmark_table import Landmarks, unit_descriptors
 from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
 from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header

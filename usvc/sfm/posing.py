@@ -19,7 +19,7 @@ import pycolmap
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.sfm.sfm import (
+from usvc.sfm.reconstruction import (
     MIN_MAPPING_IMAGES,
     SfmOptions,
     _pipeline_options,

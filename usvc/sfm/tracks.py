@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from usvc.core.errors import SfmError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 
 
 @dataclass

@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 
 from usvc.core.errors import SceneError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.scene import CAMERA_MODELS, Camera, Frame, Scene
 
 SCENE_FILE = "scene.h5"

@@ -20,10 +20,10 @@ from tqdm import tqdm
 from usvc.core.errors import SceneError
 from usvc.core.exif import read_image_bgr
 from usvc.core.scene import Frame, Scene
-from usvc.core.scene_io import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
+from usvc.core.scene_file import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
 from usvc.sfm.posing import pose_scene
-from usvc.sfm.sfm import MIN_MAPPING_IMAGES, SfmOptions
+from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
 
 log = logging.getLogger(__name__)
 

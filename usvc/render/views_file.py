@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from usvc.core.errors import UsvcError
-from usvc.core.h5io import Field, read_h5, write_h5
+from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.scene import Camera, Frame
 from usvc.render.novel_views import NovelView
 
