@@ -1,9 +1,31 @@
-"""Where each stage's artifacts live; dvc.yaml spells the same paths."""
+"""Every artifact's name: the folder each stage writes (dvc.yaml spells the same folders) and the
+files inside it. Stages, benchmarks and tools take their paths from here, never from literals.
+
+    data/<scene>/<stage>/...      artifacts (DVC outs)
+    results/<scene>/<stage>.json  each stage's record (metrics, timings)
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+
+# File names inside the artifact folders.
+SCENE_H5 = "scene.h5"  # prepared/: images' cameras, poses and split
+TRACKS_H5 = "tracks.h5"  # sfm/: the SfM model (points, observations, cameras, median depth)
+POINTS_PLY = "points.ply"  # sfm/: the SfM points, for viewers
+KEYPOINTS_H5 = "keypoints.h5"  # keypoints/: the kept tracks
+KEYPOINTS_PLY = "keypoints.ply"  # keypoints/: the kept points, for viewers
+LANDMARKS_H5 = "landmarks.h5"  # landmarks/: kept points with their SIFT descriptors
+SPLAT_PLY = "splat.ply"  # gaussians/: the Gaussian splatting model
+SPLAT_CHECK_PNG = "heldout_render_vs_image.png"  # gaussians/: a held-out render beside its photo
+RENDER_H5 = "render.h5"  # render/: the rendered views' poses and keypoint tuples
+BUFFER_H5 = "buffer.h5"  # buffer/: encoder features and their targets
+HOLDOUT_H5 = "holdout.h5"  # buffer/: cells of the withheld images (buffer.holdout_every > 0)
+MAP_PT = "map.pt"  # map/: the scene's map (encoder + head + metadata)
+POSES_TXT = "poses.txt"  # relocalize/: one estimated pose per query
+QUERIES_H5 = "queries.h5"  # relocalize/: per-query inliers, timings and refinement records
+METRICS_JSON = "metrics.json"  # a --multirun job's record, in its own folder
 
 
 @dataclass(frozen=True)
@@ -12,45 +34,105 @@ class ScenePaths:
     results_dir: Path
     scene: str
 
-    @property
-    def prepared(self) -> Path:
-        return self.data_dir / self.scene / "prepared"
+    @classmethod
+    def of_scene_dir(cls, scene_dir: Path, results_dir: Path = Path("results")) -> ScenePaths:
+        """The paths of a scene folder given directly (`data/<scene>`, or a sweep job's copy)."""
+        scene_dir = Path(scene_dir)
+        return cls(scene_dir.parent, Path(results_dir), scene_dir.name)
 
     @property
-    def sfm(self) -> Path:
-        return self.data_dir / self.scene / "sfm"
+    def scene_dir(self) -> Path:
+        return self.data_dir / self.scene
 
-    @property
-    def keypoints(self) -> Path:
-        return self.data_dir / self.scene / "keypoints"
-
-    @property
-    def landmarks(self) -> Path:
-        return self.data_dir / self.scene / "landmarks"
+    def artifact(self, stage: str) -> Path:
+        """The folder a stage writes (train writes `map`)."""
+        return getattr(self, "map" if stage == "train" else stage)
 
     def metrics(self, stage: str) -> Path:
         return self.results_dir / self.scene / f"{stage}.json"
 
     @property
-    def buffer(self) -> Path:
-        return self.data_dir / self.scene / "buffer"
+    def plots(self) -> Path:
+        return self.results_dir / self.scene / "plots"
+
+    # Artifact folders, in pipeline order.
+    @property
+    def prepared(self) -> Path:
+        return self.scene_dir / "prepared"
 
     @property
-    def map(self) -> Path:
-        return self.data_dir / self.scene / "map"
+    def sfm(self) -> Path:
+        return self.scene_dir / "sfm"
 
     @property
-    def relocalize(self) -> Path:
-        return self.data_dir / self.scene / "relocalize"
+    def keypoints(self) -> Path:
+        return self.scene_dir / "keypoints"
+
+    @property
+    def landmarks(self) -> Path:
+        return self.scene_dir / "landmarks"
 
     @property
     def gaussians(self) -> Path:
-        return self.data_dir / self.scene / "gaussians"
+        return self.scene_dir / "gaussians"
 
     @property
     def render(self) -> Path:
-        return self.data_dir / self.scene / "render"
+        return self.scene_dir / "render"
 
     @property
-    def plots(self) -> Path:
-        return self.results_dir / self.scene / "plots"
+    def buffer(self) -> Path:
+        return self.scene_dir / "buffer"
+
+    @property
+    def map(self) -> Path:
+        return self.scene_dir / "map"
+
+    @property
+    def relocalize(self) -> Path:
+        return self.scene_dir / "relocalize"
+
+    # Files inside them.
+    @property
+    def scene_file(self) -> Path:
+        return self.prepared / SCENE_H5
+
+    @property
+    def tracks_file(self) -> Path:
+        return self.sfm / TRACKS_H5
+
+    @property
+    def keypoints_file(self) -> Path:
+        return self.keypoints / KEYPOINTS_H5
+
+    @property
+    def landmarks_file(self) -> Path:
+        return self.landmarks / LANDMARKS_H5
+
+    @property
+    def splat_file(self) -> Path:
+        return self.gaussians / SPLAT_PLY
+
+    @property
+    def render_file(self) -> Path:
+        return self.render / RENDER_H5
+
+    @property
+    def buffer_file(self) -> Path:
+        return self.buffer / BUFFER_H5
+
+    @property
+    def holdout_file(self) -> Path:
+        return self.buffer / HOLDOUT_H5
+
+    @property
+    def map_file(self) -> Path:
+        return self.map / MAP_PT
+
+    @property
+    def poses_file(self) -> Path:
+        return self.relocalize / POSES_TXT
+
+    @property
+    def queries_file(self) -> Path:
+        return self.relocalize / QUERIES_H5
