@@ -62,7 +62,9 @@ def main() -> None:
     median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
     opts = SfmOptions(**cfg.sfm)
     with tempfile.TemporaryDirectory(prefix="usvc-baseline-") as work:
-        results, timings = sift_pnp_baseline(scene, paths.prepared / IMAGE_DIR, Path(work), opts, args.seeds)
+        # threads=-1: COLMAP's SIFT on all cores, unless sfm.num_threads says otherwise
+        results, timings = sift_pnp_baseline(scene, paths.prepared / IMAGE_DIR, Path(work), opts, args.seeds,
+                                             threads=-1)
     per_seed, failures = {}, {}
     for seed, poses in results.items():
         estimates = {n: (p.R, p.t) for n, p in poses.items() if p.R is not None}

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _report import scene_of, write_report  # noqa: E402
 
-from usvc.core.exif import read_image_bgr  # noqa: E402
+from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402

@@ -28,7 +28,7 @@ import torch  # noqa: E402
 
 from _report import scene_of, write_report  # noqa: E402
 
-from usvc.core.exif import read_image_bgr  # noqa: E402
+from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402

@@ -30,12 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
-from usvc.core.pose_errors import (  # noqa: E402
-    read_poses_txt,
-    rotation_error_deg,
-    summarize,
-    translation_error,
-)
+from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
+from usvc.core.poses_file import read_poses_txt  # noqa: E402
 from usvc.core.scene import Frame  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.metrics.alignment import align_and_compare  # noqa: E402

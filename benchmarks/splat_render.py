@@ -27,7 +27,7 @@ from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.gaussians.fit import image_loss, load_fit_images  # noqa: E402
 from usvc.splat.gsplat_backend import gsplat_available, render_gsplat  # noqa: E402
 from usvc.splat.ply_file import read_splat_ply  # noqa: E402
-from usvc.splat.rasterize import _bin_tiles, project, render  # noqa: E402
+from usvc.splat.rasterize import bin_tiles, project, render  # noqa: E402
 
 
 def _time(fn, views, backward: bool, sync) -> float:
@@ -56,7 +56,7 @@ def main() -> None:
     views = load_fit_images(frames, args.width)
     v0 = views[0].view
     proj = project(g, v0)
-    gid, _, _, _ = _bin_tiles(proj, v0.width, v0.height, args.tile)
+    gid, _, _, _ = bin_tiles(proj, v0.width, v0.height, args.tile)
     print(f"{args.scene}: {len(g)} Gaussians, {int((proj.radii > 0).sum())} visible in view 0, "
           f"{len(gid)} tile pairs, {v0.width}x{v0.height}, {torch.get_num_threads()} CPU threads")
     rows = []

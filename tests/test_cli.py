@@ -24,7 +24,8 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from usvc.cli import main
-from usvc.core.pose_errors import read_poses_txt, rotation_error_deg
+from usvc.core.pose_errors import rotation_error_deg
+from usvc.core.poses_file import read_poses_txt
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
 from usvc.model.head import Head, Regressor, save_map
@@ -77,6 +78,7 @@ def quiet(stderr: str) -> bool:
     return all(NO_LANDMARKS in line for line in stderr.splitlines()) and len(stderr.splitlines()) <= 1
 
 
+@pytest.mark.slow
 def test_localize_prints_json(files: dict[str, Path]) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"],
                 "--focal", "130", files["photo"], files["photo"])
@@ -92,6 +94,7 @@ def test_localize_prints_json(files: dict[str, Path]) -> None:
     assert len(proc.stderr.splitlines()) == 1 and "refinement by features is off" in proc.stderr
 
 
+@pytest.mark.slow
 def test_localize_json_list(files: dict[str, Path]) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--json-list",
                 "--intrinsics", "130", "125", "81", "59", "--backend", "pycolmap", "--max-error-px", "5",
@@ -101,6 +104,7 @@ def test_localize_json_list(files: dict[str, Path]) -> None:
     assert isinstance(records, list) and len(records) == 1 and KEYS <= set(records[0])
 
 
+@pytest.mark.slow
 def test_localize_without_refinement(files: dict[str, Path]) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--no-refine",
                 "--focal", "130", files["photo"])
@@ -120,6 +124,7 @@ def test_localize_without_refinement(files: dict[str, Path]) -> None:
     (["--focal", "130", "--focal-tolerance", "-1"], "photo", "--focal-tolerance -1: must be >= 0"),
 ], ids=["wrong-size", "missing-photo", "undecodable", "other-encoder", "truncated-map",
         "missing-map", "confidence-range", "focal-tolerance-range"])
+@pytest.mark.slow
 def test_localize_errors(files: dict[str, Path], extra: list[str], photo: str, cause: str) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"],
                 *(arg.format(**files) for arg in extra), files[photo])
@@ -131,6 +136,7 @@ def test_localize_errors(files: dict[str, Path], extra: list[str], photo: str, c
     assert proc.stdout == ""
 
 
+@pytest.mark.slow
 def test_a_photo_that_fails_to_decode_keeps_the_others(files: dict[str, Path], tmp_path: Path) -> None:
     """A truncated JPEG (its header reads, its pixels do not) is that photo's record, not the run's end."""
     good = tmp_path / "good.jpg"
@@ -174,6 +180,7 @@ def batch(files: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> d
     return {"photos": photos, "empty": folder / "empty", "exif": folder / "exif.jpg", "root": folder}
 
 
+@pytest.mark.slow
 def test_folder_batch_with_all_exports(files: dict[str, Path], batch: dict[str, Path]) -> None:
     out = batch["root"] / "out"
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--focal", "130",
@@ -192,6 +199,7 @@ def test_folder_batch_with_all_exports(files: dict[str, Path], batch: dict[str, 
     assert len(json.loads((out / "transforms.json").read_text())["frames"]) == len(ok)
 
 
+@pytest.mark.slow
 def test_intrinsics_from_exif_else_estimated(files: dict[str, Path], batch: dict[str, Path]) -> None:
     proc = usvc("localize", "--map", files["map"], "--encoder-weights", files["weights"], batch["exif"],
                 files["photo"])
@@ -284,6 +292,7 @@ def test_exact_scene_coordinates_export_the_true_pose(files: dict[str, Path], tm
         np.testing.assert_allclose(t_est, t_true, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_progress_bar_goes_to_a_terminal_stderr_only(files: dict[str, Path], batch: dict[str, Path]) -> None:
     pty = pytest.importorskip("pty")
     import fcntl
@@ -331,6 +340,7 @@ def test_progress_bar_goes_to_a_terminal_stderr_only(files: dict[str, Path], bat
 ], ids=["camera-model", "camera-too-few", "camera-too-many", "camera-focal", "camera-pp", "focal-zero",
         "empty-folder", "missing-in-batch", "all-garbage", "format-no-dir", "format-unknown", "out-is-file",
         "twice", "no-photos"])
+@pytest.mark.slow
 def test_batch_errors_before_the_map_loads(files: dict[str, Path], batch: dict[str, Path], tmp_path: Path,
                                            args: list[str], cause: str) -> None:
     paths = {**files, **batch, "out": tmp_path / "out"}
@@ -343,6 +353,7 @@ def test_batch_errors_before_the_map_loads(files: dict[str, Path], batch: dict[s
     assert proc.stdout == "" and not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_localize_landmarks_flags(files: dict[str, Path], tmp_path: Path) -> None:
     base = ("localize", "--map", files["map"], "--encoder-weights", files["weights"], "--focal", "130")
     missing = usvc(*base, "--landmarks", tmp_path / "nowhere.h5", files["photo"])

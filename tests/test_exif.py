@@ -12,7 +12,8 @@ from PIL import Image, ImageOps
 from PIL.TiffImagePlugin import IFDRational
 
 from usvc.core.errors import SceneError
-from usvc.core.exif import exif_focal_px, oriented_size, read_image_bgr
+from usvc.core.exif import exif_focal_px, oriented_size
+from usvc.core.images import read_image_bgr
 
 W, H = 64, 48
 
@@ -114,7 +115,7 @@ def test_png_without_exif(tmp_path: Path) -> None:
 
 def test_truncated_jpeg_is_one_clear_error_not_grey_pixels(tmp_path: Path) -> None:
     """Decoders fill a cut-off JPEG with grey and carry on; usvc refuses it by name."""
-    from usvc.core.exif import jpeg_is_complete
+    from usvc.core.images import jpeg_is_complete
 
     whole = photo(tmp_path / "whole.jpg", orientation=6, size=(160, 120), **{"a405": 28})
     data = whole.read_bytes()

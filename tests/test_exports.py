@@ -12,7 +12,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
-from usvc.core.pose_errors import read_poses_txt
+from usvc.core.poses_file import read_poses_txt
 from usvc.core.scene import Camera
 from usvc.prepare.importers import load_scene
 from usvc.relocalize.exports import FORMATS, Posed, export, nerfstudio_intrinsics

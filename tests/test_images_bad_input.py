@@ -19,13 +19,14 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import SceneError, UsvcError
-from usvc.core.exif import MAX_IMAGE_PIXELS, apply_orientation, oriented_size, read_image_bgr
+from usvc.core.exif import MAX_IMAGE_PIXELS, apply_orientation, oriented_size
+from usvc.core.images import read_image_bgr
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.undistort import MIN_KEPT_SIDE, check_distortion, undistorted_camera
 from usvc.metrics.alignment import align_and_compare
 from usvc.prepare.working_images import prepare_scene
 from usvc.sfm.pose_check import pose_agreement, poses_disagree, warn_if_poses_disagree
-from usvc.sfm.reconstruction import _register_images
+from usvc.sfm.reconstruction import register_images
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -197,7 +198,7 @@ def forward_capture(tmp: Path, n: int = 12, size: tuple[int, int] = (480, 360), 
         R = Rotation.from_rotvec(np.radians(rng.normal(0, 0.2, 3))).as_matrix()
         frames.append(Frame(f"{i:03d}.png", tmp / f"{i:03d}.png", cam, "train", R, -R @ c))
     db_path = tmp / "database.db"
-    _register_images(frames, db_path)
+    register_images(frames, db_path)
     db = pycolmap.Database.open(db_path)
     try:
         ids = {im.name: im.image_id for im in db.read_all_images()}

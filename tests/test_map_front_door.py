@@ -178,6 +178,7 @@ def test_files_that_are_not_photos_are_listed_in_one_warning(checkout: Path, pho
                                        "raw/": "a folder (subfolders are not read)"}
 
 
+@pytest.mark.slow
 def test_skipped_files_are_listed_in_prepared_json(tmp_path: Path) -> None:
     """The prepare stage reads the folder too: prepared.json lists what it skipped (SfM replaced by a stub
     here, the stage's own code runs unchanged)."""
@@ -415,6 +416,7 @@ def test_two_maps_of_different_names_at_once_both_land_in_params(checkout: Path,
     assert registered(checkout, "kitchen") and registered(checkout, "hall")
 
 
+@pytest.mark.slow
 def test_two_processes_of_one_name_at_once(checkout: Path, photos: Path) -> None:
     """The same race as the real CLI runs it: two processes, one winner, one 'already exists'."""
     cmd = [sys.executable, "-m", "usvc.cli", "--threads", "1", "map", str(photos), "--name", "kitchen", "--no-run"]

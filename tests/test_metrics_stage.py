@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-from usvc.core.pose_errors import write_poses_txt
+from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import write_scene_h5
 from usvc.metrics.evaluate import (
@@ -346,6 +346,7 @@ def _run_stage(tmp_path: Path, *extra: str, flags: tuple[str, ...] = ()) -> subp
     )
 
 
+@pytest.mark.slow
 def test_stage_writes_metrics_and_plots(inputs):
     proc = _run_stage(inputs)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -372,6 +373,7 @@ def test_stage_writes_metrics_and_plots(inputs):
     assert not (inputs / "results/mini/headline.timing.json").exists()
 
 
+@pytest.mark.slow
 def test_stage_scores_initial_poses_when_recorded(inputs):
     scene = _scene(metric_scale=1.0)
     initial = _initial_poses(scene)
@@ -387,6 +389,7 @@ def test_stage_scores_initial_poses_when_recorded(inputs):
     assert metrics["refine_mean_iterations"] == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_stage_multirun_leaves_the_tracked_results_alone(inputs):
     proc = _run_stage(inputs, "seed=0,1", "hydra.sweep.subdir=${hydra.job.num}", flags=("--multirun",))
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -399,6 +402,7 @@ def test_stage_multirun_leaves_the_tracked_results_alone(inputs):
         assert (job / "plots" / "trajectory.png").is_file()
 
 
+@pytest.mark.slow
 def test_multirun_through_submitits_local_executor(inputs):
     """The cluster path (hydra/launcher=submitit_slurm) with submitit's local executor: every job is
     submitted, runs in its own process, and writes its own directory."""
@@ -414,6 +418,7 @@ def test_multirun_through_submitits_local_executor(inputs):
     assert len(logs) == 2, logs  # one submitit job each
 
 
+@pytest.mark.slow
 def test_stage_without_poses_fails_in_one_line(inputs):
     (inputs / "data/mini/relocalize/poses.txt").unlink()
     proc = _run_stage(inputs)

@@ -19,7 +19,7 @@ from usvc.model.encoder import (
 )
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor, homogeneous_scale, load_map, save_map
-from usvc.model.preprocess import resize_to_short_side, to_network_input
+from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "usvc" / "model"
 
@@ -185,13 +185,13 @@ def test_preprocess() -> None:
     rgb[0, 0] = (255, 0, 0)
     rgb[0, 1] = (0, 255, 0)
     rgb[1, 2] = (255, 255, 255)
-    x = to_network_input(rgb, rgb=True)
+    x = normalise(luma01(rgb, rgb=True))
     assert x.shape == (1, 1, 2, 3) and x.dtype == torch.float32
     assert x[0, 0, 0, 0].item() == pytest.approx((0.299 - 0.4) / 0.25, abs=1e-6)
     assert x[0, 0, 0, 1].item() == pytest.approx((0.587 - 0.4) / 0.25, abs=1e-6)
     assert x[0, 0, 1, 2].item() == pytest.approx((1.0 - 0.4) / 0.25, abs=1e-5)
     assert x[0, 0, 1, 0].item() == pytest.approx(-1.6)
-    assert torch.allclose(to_network_input(rgb[..., ::-1].copy(), rgb=False), x)
+    assert torch.allclose(normalise(luma01(rgb[..., ::-1].copy(), rgb=False)), x)
 
     img = np.zeros((960, 1280, 3), np.uint8)
     small, scale = resize_to_short_side(img)

@@ -228,6 +228,7 @@ def test_sweep_table_reads_job_dirs(tmp_path):
     assert format_table([]) == "(no job wrote metrics)"
 
 
+@pytest.mark.slow
 def test_sweep_refuses_scene_only_before_running_anything(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "stages.sweep", "scene=mini", f"hydra.run.dir={tmp_path}/job"],
                           cwd=REPO, capture_output=True, text=True, timeout=120)

@@ -5,13 +5,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
-from usvc.core.pose_errors import (
-    read_poses_txt,
-    rotation_error_deg,
-    summarize,
-    translation_error,
-    write_poses_txt,
-)
+from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error
+from usvc.core.poses_file import read_poses_txt, write_poses_txt
 
 KEYS = {
     "acc_10cm_5deg", "acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_5deg_3pct", "median_rot_deg",

@@ -54,7 +54,7 @@ def test_photos_that_cannot_be_posed_are_a_clear_error(tmp_path: Path) -> None:
     out = tmp_path / "prepared"
     out.mkdir()
     with pytest.raises(SfmError, match="scene 'blank': COLMAP could not initialise a reconstruction"):
-        prepare_scene(scene, out, working_width=0, sfm=OPTS)
+        prepare_scene(scene, out, working_width=0, sfm=OPTS, threads=-1)
     assert not any(out.iterdir())
     with pytest.raises(SceneError, match="has no poses: preparing it needs SfM options"):
         prepare_scene(scene, out, working_width=0)
@@ -121,7 +121,7 @@ def test_unposed_miniature_photos_get_the_true_poses_up_to_a_similarity(tmp_path
     scene = load_scene("images", photos, "mini_photos", "every_nth", 6)
     out = tmp_path / "posed"
     out.mkdir()
-    stats = prepare_scene(scene, out, working_width=0, sfm=OPTS)
+    stats = prepare_scene(scene, out, working_width=0, sfm=OPTS, threads=-1)
     assert stats["frames"] + len(stats["unposed"]) == len(given)
     assert stats["frames"] >= 0.9 * len(given)
     renamed = [Frame(Path(f.name).name, f.image_path, f.camera, f.split, f.R, f.t) for f in given]
@@ -140,7 +140,7 @@ def test_unposed_office_photos_match_the_given_poses(tmp_path: Path) -> None:
     shutil.copytree(root / "images", photos / "images")
     out = tmp_path / "posed"
     out.mkdir()
-    stats = prepare_scene(load_scene("images", photos, "office_photos", "every_nth", 8), out, 640, sfm=OPTS)
+    stats = prepare_scene(load_scene("images", photos, "office_photos", "every_nth", 8), out, 640, sfm=OPTS, threads=-1)
     assert stats["frames"] == 64 and not stats["unposed"]
     assert stats["sfm_cameras"][0]["model"] == "SIMPLE_RADIAL"
     _check_posed(out, read_scene_h5(given_dir).frames, stats, rot_deg=1.0, centre_frac=0.02)
@@ -155,7 +155,7 @@ def test_a_corrupt_photo_in_an_images_scene_is_named_and_nothing_is_written(tmp_
     out = tmp_path / "prepared"
     out.mkdir()
     with pytest.raises(SceneError, match=r"1\.jpg: truncated or corrupt JPEG"):
-        prepare_scene(scene, out, working_width=0, sfm=OPTS)
+        prepare_scene(scene, out, working_width=0, sfm=OPTS, threads=-1)
     assert not any(out.iterdir())
 
 

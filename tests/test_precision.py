@@ -37,6 +37,7 @@ def test_a_bad_precision_fails_at_config_time_naming_the_key(group):
     validate(compose_for_script("mini", [f"{group}.precision=bf16"]))
 
 
+@pytest.mark.slow
 def test_a_bad_precision_stops_the_stage_in_one_line():
     proc = subprocess.run([sys.executable, "-m", "stages.train", "train.precision=fp16"], cwd=REPO,
                           capture_output=True, text=True)

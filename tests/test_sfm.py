@@ -52,7 +52,7 @@ def test_featureless_scene_is_a_clear_error(tmp_path):
     work = tmp_path / "work"
     work.mkdir()
     with pytest.raises(SfmError, match="triangulated only 0 points from 3 images"):
-        reconstruct(frames, tmp_path / IMAGE_DIR, work, OPTS, has_poses=True)
+        reconstruct(frames, tmp_path / IMAGE_DIR, work, OPTS, has_poses=True, threads=-1)
 
 
 @pytest.mark.slow
@@ -67,7 +67,7 @@ def test_office_imported_poses_reproject_under_one_pixel(tmp_path):
     assert loaded.frames[0].camera.width == 640
     work = tmp_path / "work"
     work.mkdir()
-    rec, info = reconstruct(loaded.split("train"), prepared / IMAGE_DIR, work, OPTS, loaded.has_poses)
+    rec, info = reconstruct(loaded.split("train"), prepared / IMAGE_DIR, work, OPTS, loaded.has_poses, threads=-1)
     assert info["reconstruction"] == "triangulate" and info["matching"] == "exhaustive"
     tracks = from_reconstruction(rec, work / "database.db")
     stats = sfm_stats(tracks)
@@ -108,7 +108,8 @@ from usvc.sfm.reconstruction import SfmOptions, reconstruct
 from usvc.sfm.tracks import from_reconstruction, write_tracks
 prepared, work = Path(sys.argv[1]), Path(sys.argv[2])
 opts = SfmOptions(**eval(sys.argv[3]))
-rec, _ = reconstruct(read_scene_h5(prepared).split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True)
+rec, _ = reconstruct(read_scene_h5(prepared).split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True,
+                     threads=-1)
 write_tracks(work / "tracks.h5", from_reconstruction(rec, work / "database.db"))
 """
 
@@ -145,7 +146,7 @@ def test_incremental_mapping_on_the_miniature_scene_recovers_the_poses(small_min
     work = tmp_path / "work"
     work.mkdir()
     opts = SfmOptions(**{**OPTS.__dict__, "reconstruction": "incremental"})
-    rec, info = reconstruct(frames, small_mini / IMAGE_DIR, work, opts, has_poses=True)
+    rec, info = reconstruct(frames, small_mini / IMAGE_DIR, work, opts, has_poses=True, threads=-1)
     assert info["reconstruction"] == "incremental"
     assert rec.num_reg_images() >= 0.9 * len(frames)
     truth = {f.name: f.center for f in frames}
@@ -167,7 +168,7 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
     rng = np.random.default_rng(0)
     blind = replace(scene, frames=[f if f.split == "train" else replace(f, t=f.t + rng.normal(size=3))
                                    for f in scene.frames])
-    results, timings = sift_pnp_baseline(blind, small_mini / IMAGE_DIR, tmp_path, OPTS, seeds=[0, 1])
+    results, timings = sift_pnp_baseline(blind, small_mini / IMAGE_DIR, tmp_path, OPTS, seeds=[0, 1], threads=-1)
     assert set(results) == {0, 1} and timings["model_points"] > 500
     for seed, poses in results.items():
         assert set(poses) == set(truth)
@@ -183,7 +184,7 @@ def test_two_mapping_images_say_why_they_are_not_enough(tmp_path):
     frames = [Frame(f"{i}.png", tmp_path / f"{i}.png", cam, "train", np.eye(3), np.array([0.1 * i, 0, 0]))
               for i in range(2)]
     with pytest.raises(SfmError, match=r"at least 3 mapping images, got 2: COLMAP keeps only points seen in 3"):
-        reconstruct(frames, tmp_path, tmp_path, OPTS, has_poses=True)
+        reconstruct(frames, tmp_path, tmp_path, OPTS, has_poses=True, threads=-1)
 
 
 @pytest.mark.slow
@@ -196,7 +197,7 @@ def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
 
     frames = read_scene_h5(small_mini).split("train")
     db = tmp_path / "database.db"
-    extract(frames, small_mini / IMAGE_DIR, db, OPTS)
+    extract(frames, small_mini / IMAGE_DIR, db, OPTS, threads=-1)
     match(frames, db, tmp_path, OPTS, has_poses=True)
     right = pose_agreement(db, frames)
     assert right["pairs"] > 50 and right["median_pair_epipolar_px"] < 1.0

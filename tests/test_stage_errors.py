@@ -45,27 +45,32 @@ def _assert_clean_failure(proc, tmp_path, *needles):
     assert not (tmp_path / "results" / "office" / "prepared.json").exists()
 
 
+@pytest.mark.slow
 def test_good_scene_prepares(tmp_path, llff):
     proc = _prepare(tmp_path, llff)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "data/office/prepared/scene.h5").is_file()
 
 
+@pytest.mark.slow
 def test_missing_image(tmp_path, llff):
     (llff / "images" / "img_3.png").unlink()
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "poses_bounds.npy", "8", "9")
 
 
+@pytest.mark.slow
 def test_unreadable_image(tmp_path, llff):
     (llff / "images" / "img_3.png").write_bytes(b"not a png")
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "img_3.png")
 
 
+@pytest.mark.slow
 def test_pose_count_mismatch(tmp_path, llff):
     np.save(llff / "poses_bounds.npy", np.load(llff / "poses_bounds.npy")[:8])
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "poses_bounds.npy")
 
 
+@pytest.mark.slow
 def test_non_rotation_pose(tmp_path, llff):
     pb = np.load(llff / "poses_bounds.npy")
     pb[2, 0] *= 3.0
@@ -73,6 +78,7 @@ def test_non_rotation_pose(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 2", "not a rotation")
 
 
+@pytest.mark.slow
 def test_non_finite_pose(tmp_path, llff):
     pb = np.load(llff / "poses_bounds.npy")
     pb[4, 3] = np.nan
@@ -80,6 +86,7 @@ def test_non_finite_pose(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 4", "not finite")
 
 
+@pytest.mark.slow
 def test_cropped_images_are_refused(tmp_path, llff):
     """Images cropped to another aspect than the poses' (h, w): an anisotropic focal, refused."""
     rng = np.random.default_rng(1)
@@ -88,6 +95,7 @@ def test_cropped_images_are_refused(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "row 0", "80x54", "1920x1080", "cropped images?")
 
 
+@pytest.mark.slow
 def test_every_mapping_image_the_same_photo_is_refused(tmp_path, llff):
     same = (llff / "images" / "img_0.png").read_bytes()
     for i in range(1, 9):
@@ -95,6 +103,7 @@ def test_every_mapping_image_the_same_photo_is_refused(tmp_path, llff):
     _assert_clean_failure(_prepare(tmp_path, llff), tmp_path, "mapping images differ", "pixel-identical copies")
 
 
+@pytest.mark.slow
 def test_unknown_format(tmp_path, llff):
     proc = subprocess.run(
         [sys.executable, "-m", "stages.prepare", "scene=office", f"scene.path={llff}", "scene.format=nerf",
@@ -104,6 +113,7 @@ def test_unknown_format(tmp_path, llff):
     _assert_clean_failure(proc, tmp_path, "scene.format='nerf'")
 
 
+@pytest.mark.slow
 def test_ctrl_c_prints_one_line_and_leaves_nothing(tmp_path):
     """SIGINT while the generate stage renders: one line, exit 130, no artifact, no temporary dir."""
     import signal

@@ -265,7 +265,7 @@ def _localize(args: argparse.Namespace) -> int:
     from PIL import Image
     from tqdm import tqdm
 
-    from usvc.core.exif import read_image_bgr
+    from usvc.core.images import read_image_bgr
     from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
     threads.apply(args.threads)

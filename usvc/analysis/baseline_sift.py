@@ -26,11 +26,11 @@ from usvc.core.scene import Frame, Scene
 from usvc.sfm.posing import register_query
 from usvc.sfm.reconstruction import (
     SfmOptions,
-    _pipeline_options,
-    _posed_reconstruction,
     extract,
     matching_kwargs,
+    pipeline_options,
     pose_pairs,
+    posed_reconstruction,
 )
 
 log = logging.getLogger(__name__)
@@ -66,12 +66,13 @@ def _mapping_pairs(mapping: list[Frame], opts: SfmOptions) -> list[tuple[str, st
     return pose_pairs(mapping, opts.pose_pairs_per_image)
 
 
-def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions,
-                      seeds: list[int]) -> tuple[dict[int, dict[str, BaselinePose]], dict[str, float]]:
+def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions, seeds: list[int],
+                      threads: int) -> tuple[dict[int, dict[str, BaselinePose]], dict[str, float]]:
     """Localize every query of ``scene`` once per RANSAC seed; returns ({seed: {name: pose}}, timings).
 
     ``image_dir`` holds the prepared (pinhole) images by frame name; ``work_dir`` an empty folder
-    for the COLMAP database and model.
+    for the COLMAP database and model; SIFT runs on ``threads`` threads (see
+    :func:`usvc.sfm.reconstruction.colmap_threads`).
     """
     if not scene.has_poses:
         raise SfmError(f"scene {scene.name!r}: the SIFT baseline needs posed mapping images")
@@ -82,15 +83,15 @@ def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOp
     db_path = work_dir / "database.db"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    extract(scene.frames, image_dir, db_path, opts)
+    extract(scene.frames, image_dir, db_path, opts, threads)
     timings["extract_s_per_image"] = (time.perf_counter() - t0) / len(scene.frames)
 
     t0 = time.perf_counter()
     _match_pairs(db_path, _pairs_file(work_dir / "mapping_pairs.txt", _mapping_pairs(mapping, opts)), opts)
     model_dir = work_dir / "model"
     model_dir.mkdir()
-    rec = pycolmap.triangulate_points(_posed_reconstruction(mapping, db_path), db_path, image_dir, model_dir,
-                                      options=_pipeline_options(opts), refine_intrinsics=False)
+    rec = pycolmap.triangulate_points(posed_reconstruction(mapping, db_path), db_path, image_dir, model_dir,
+                                      options=pipeline_options(opts), refine_intrinsics=False)
     timings["map_s"] = time.perf_counter() - t0
     if rec.num_points3D() < opts.min_points:
         raise SfmError(f"scene {scene.name!r}: the SIFT model has only {rec.num_points3D()} points")

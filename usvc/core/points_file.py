@@ -17,10 +17,3 @@ def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray, **scalars: np
     for name, values in scalars.items():
         data[name] = values
     PlyData([PlyElement.describe(data, "vertex")]).write(str(path))
-
-
-def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    v = PlyData.read(str(path))["vertex"]
-    xyz = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
-    rgb = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
-    return xyz, rgb

@@ -1,4 +1,4 @@
-"""Pose error metrics and the per-query poses file, following ACE's evaluation rules.
+"""Pose error metrics, following ACE's evaluation rules (the poses file: usvc.core.poses_file).
 
 Rules (see the design notes): translation error is the distance between camera centres,
 rotation error is the angle of R_est R_gtᵀ, accuracies use a strict "<" on both errors, and a
@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
-from usvc.core.atomic import atomic_file
 from usvc.core.errors import UsvcError
-from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from usvc.core.geometry import camera_centers
+# Transitional: stages/metrics.py imports read_poses_txt from here; it goes once that imports it from
+# usvc.core.poses_file.
+from usvc.core.poses_file import read_poses_txt  # noqa: F401
 
 # (name, translation threshold in metres, rotation threshold in degrees)
 METRIC_THRESHOLDS: tuple[tuple[str, float, float], ...] = (
@@ -35,7 +36,6 @@ DEPTH_RELATIVE_THRESHOLDS: tuple[tuple[str, float, float], ...] = (
     ("acc_rel_2cm_2deg", 0.02 / REFERENCE_MEDIAN_DEPTH_M, 2.0),
     ("acc_rel_1cm_1deg", 0.01 / REFERENCE_MEDIAN_DEPTH_M, 1.0),
 )
-POSES_HEADER = "# name qw qx qy qz tx ty tz  (world-to-camera, OpenCV axes, Hamilton quaternion)"
 
 
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray | float:
@@ -118,58 +118,3 @@ def summarize(
     out["n_queries"] = int(n)
     out["n_failed"] = int(bad.sum())
     return out
-
-
-def write_poses_txt(path: Path | str, names: Sequence[str], R: np.ndarray, t: np.ndarray) -> None:
-    """Write world-to-camera poses, one `name qw qx qy qz tx ty tz` line per query."""
-    path = Path(path)
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
-    if not (len(names) == len(R) == len(t)):
-        raise UsvcError(f"{path}: {len(names)} names, {len(R)} rotations and {len(t)} translations")
-    lines = [POSES_HEADER]
-    for name, Ri, ti in zip(names, R, t):
-        if not name or name != name.strip() or "\n" in name or "\r" in name or name.startswith("#"):
-            raise UsvcError(f"{path}: query name {name!r} cannot be written on one line")
-        if not (np.all(np.isfinite(Ri)) and np.all(np.isfinite(ti))):
-            raise UsvcError(f"{path}: pose of {name!r} is not finite")
-        values = np.concatenate([matrix_to_quat_wxyz(Ri), ti])
-        lines.append(" ".join([name, *(repr(float(v)) for v in values)]))
-    with atomic_file(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-
-
-def read_poses_txt(path: Path | str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Read a poses file into {name: (R, t)}; '#' lines and blank lines are skipped.
-
-    The name is everything before the last seven fields, so names may contain spaces.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise UsvcError(f"{path}: cannot read poses file ({e.strerror or e})") from e
-    poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        where = f"{path}:{lineno}"
-        fields = line.rsplit(maxsplit=7)
-        if len(fields) != 8:
-            raise UsvcError(f"{where}: expected 'name qw qx qy qz tx ty tz', got {line!r}")
-        name = fields[0]
-        try:
-            values = np.array([float(v) for v in fields[1:]])
-        except ValueError:
-            raise UsvcError(f"{where}: non-numeric pose value in {line!r}") from None
-        if not np.all(np.isfinite(values)):
-            raise UsvcError(f"{where}: pose of {name!r} is not finite")
-        if name in poses:
-            raise UsvcError(f"{where}: duplicate query name {name!r}")
-        try:
-            R = quat_wxyz_to_matrix(values[:4])
-        except ValueError:
-            raise UsvcError(f"{where}: quaternion of {name!r} has zero norm") from None
-        poses[name] = (R, values[4:].copy())
-    return poses

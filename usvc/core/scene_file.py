@@ -123,15 +123,6 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
                  pose_source=pose_source)
 
 
-def read_source_cameras(prepared_dir: Path) -> list[Camera] | None:
-    """The imported (distorted, full-size) camera of every frame, or None for older files."""
-    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
-        if "source_camera_model" not in h5:
-            return None
-        return _cameras_from(_strings(h5["source_camera_model"]), h5["source_camera_size"][()],
-                             h5["source_camera_params"][()])
-
-
 def read_depth(prepared_dir: Path, index: int) -> np.ndarray | None:
     """Depth of frame `index` in scene units at working resolution, if the scene has depth."""
     with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:

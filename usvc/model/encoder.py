@@ -17,7 +17,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from usvc.model.errors import ModelError
+from usvc.model.errors import ModelError, first_line
+
+# Transitional: usvc/model/head.py imports this name; it goes once head.py imports first_line from
+# usvc.model.errors.
+_first_line = first_line
 
 log = logging.getLogger(__name__)
 
@@ -141,11 +145,6 @@ def encoder_fingerprint(encoder: nn.Module) -> str:
     return digest.hexdigest()
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
-
-
 def _short_list(names: list[str], limit: int = 6) -> str:
     shown = ", ".join(names[:limit])
     return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
@@ -163,7 +162,7 @@ def _read_state_dict(path: Path) -> Mapping[str, object]:
         try:
             return load_file(str(path), device="cpu")
         except Exception as exc:
-            raise ModelError(f"{path}: cannot read encoder weights ({_first_line(exc)})") from exc
+            raise ModelError(f"{path}: cannot read encoder weights ({first_line(exc)})") from exc
     from usvc.model.safe_load import load_tensors
 
     return load_tensors(path, "encoder weights")

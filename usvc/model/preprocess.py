@@ -49,8 +49,3 @@ def normalise(gray01: np.ndarray) -> torch.Tensor:
     """HxW luma in [0, 1] (possibly augmented) -> (1, 1, H, W) network input."""
     normalised = (gray01 - INPUT_MEAN) / INPUT_STD
     return torch.from_numpy(np.ascontiguousarray(normalised, dtype=np.float32))[None, None]
-
-
-def to_network_input(image: np.ndarray, rgb: bool) -> torch.Tensor:
-    """uint8 HxWx3 (RGB if `rgb`, else BGR) or HxW grey -> (1, 1, H, W) float32, normalised luma."""
-    return normalise(luma01(image, rgb))

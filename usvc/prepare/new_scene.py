@@ -230,7 +230,7 @@ def _scan_tree(source: Path) -> tuple[list[Path], list[Path]]:
 
 def _check_photos(scene, source: Path, opts: NewSceneOptions) -> None:
     """Enough photos to map and to query, each readable and decodable in full."""
-    from usvc.core.exif import read_image_bgr
+    from usvc.core.images import read_image_bgr
     from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES
 
     n = len(scene.frames)

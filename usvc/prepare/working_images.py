@@ -18,12 +18,12 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.core.errors import SceneError
-from usvc.core.exif import read_image_bgr
+from usvc.core.images import read_image_bgr
 from usvc.core.scene import Frame, Scene
 from usvc.core.scene_file import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
 from usvc.sfm.posing import pose_scene
-from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
+from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions, stage_threads
 
 log = logging.getLogger(__name__)
 
@@ -45,16 +45,17 @@ def _read_depth(frame: Frame) -> np.ndarray | None:
 
 
 def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop",
-                  sfm: SfmOptions | None = None) -> dict:
+                  sfm: SfmOptions | None = None, threads: int | None = None) -> dict:
     """Write undistorted, resized images and scene.h5 into `out_dir` (which must be empty).
 
     `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
     :mod:`usvc.core.undistort`. A scene without poses is first posed by SfM (:mod:`usvc.sfm.posing`,
-    options `sfm`) on its photos at working resolution, then undistorted with the calibrated
-    cameras. Returns summary figures for the stage's metrics file.
+    options `sfm`, feature extraction on `threads` threads) on its photos at working resolution,
+    then undistorted with the calibrated cameras. Returns summary figures for the stage's metrics file.
     """
     if not scene.has_poses:
-        return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm)
+        return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm,
+                                stage_threads() if threads is None else threads)
     return _write_prepared(scene, out_dir, working_width, undistort_fov)
 
 
@@ -134,7 +135,7 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
 
 
 def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
-                     sfm: SfmOptions | None) -> dict:
+                     sfm: SfmOptions | None, threads: int) -> dict:
     if sfm is None:
         raise SceneError(f"scene {scene.name!r} has no poses: preparing it needs SfM options")
     with tempfile.TemporaryDirectory(prefix="usvc-posing-") as work:
@@ -147,7 +148,7 @@ def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_
         resized = replace(resized, frames=[
             replace(f, camera=source[f.name].camera.scaled(f.camera.width, f.camera.height),
                     focal_known=source[f.name].focal_known) for f in resized.frames])
-        posed, missing = pose_scene(resized, resized_dir / IMAGE_DIR, Path(work), sfm)
+        posed, missing = pose_scene(resized, resized_dir / IMAGE_DIR, Path(work), sfm, threads)
         stats = _write_prepared(posed, out_dir, 0, undistort_fov)
     cams = sorted({f.camera for f in posed.frames}, key=lambda c: c.params)
     return {**stats, "pose_source": "sfm", "unposed": missing, "photos": len(scene.frames),

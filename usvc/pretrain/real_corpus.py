@@ -21,7 +21,7 @@ import numpy as np
 
 from usvc.buffer.build import holdout_split
 from usvc.core.errors import UsvcError
-from usvc.core.exif import read_image_bgr
+from usvc.core.images import read_image_bgr
 from usvc.core.scene_file import read_scene_h5
 from usvc.model.preprocess import luma01
 from usvc.pretrain.pretrain_data import CorpusScene

@@ -20,7 +20,7 @@ import numpy as np
 from usvc.core.atomic import atomic_file
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
-from usvc.core.pose_errors import write_poses_txt
+from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Camera
 
 FORMATS = ("jsonl", "poses", "colmap", "nerfstudio")
@@ -150,22 +150,10 @@ def transforms_json_text(items: Sequence[Posed], folder: Path) -> str:
     return json.dumps({**top, "frames": frames}, indent=2) + "\n"
 
 
-def write_jsonl(path: Path, records: Sequence[Mapping[str, Any]]) -> Path:
-    return _write_text(Path(path), jsonl_text(records))
-
-
 def write_poses(path: Path, items: Sequence[Posed]) -> Path:
     write_poses_txt(path, [i.name for i in items], np.array([i.R for i in items]).reshape(-1, 3, 3),
                     np.array([i.t for i in items]).reshape(-1, 3))
     return Path(path)
-
-
-def write_colmap(folder: Path, items: Sequence[Posed]) -> list[Path]:
-    return [_write_text(Path(folder) / name, text) for name, text in colmap_texts(items).items()]
-
-
-def write_transforms_json(path: Path, items: Sequence[Posed]) -> Path:
-    return _write_text(Path(path), transforms_json_text(items, Path(path).parent))
 
 
 def export(out_dir: Path, formats: Sequence[str], records: Sequence[Mapping[str, Any]],

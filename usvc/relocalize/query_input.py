@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from usvc.core.errors import UsvcError
-from usvc.core.exif import read_image_bgr
+from usvc.core.images import read_image_bgr
 from usvc.core.scene import Camera
 from usvc.model.preprocess import luma01
 

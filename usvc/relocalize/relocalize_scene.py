@@ -11,7 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.core.errors import UsvcError
-from usvc.core.pose_errors import write_poses_txt
+from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Frame
 from usvc.relocalize.queries_file import refinement_summary, write_queries
 from usvc.relocalize.pose_estimate import PoseEstimate

@@ -22,9 +22,9 @@ from usvc.core.scene import Camera, Frame, Scene
 from usvc.sfm.reconstruction import (
     MIN_MAPPING_IMAGES,
     SfmOptions,
-    _pipeline_options,
     extract,
     match,
+    pipeline_options,
 )
 
 log = logging.getLogger(__name__)
@@ -77,17 +77,19 @@ def register_query(db: pycolmap.Database, rec: pycolmap.Reconstruction, query_id
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), n, ""
 
 
-def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions) -> tuple[Scene, dict[str, str]]:
-    """Posed copy of ``scene`` (images under ``image_dir`` by frame name) and {name: why not posed}."""
+def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions,
+               threads: int) -> tuple[Scene, dict[str, str]]:
+    """Posed copy of ``scene`` (images under ``image_dir`` by frame name) and {name: why not posed};
+    features are extracted on `threads` threads (see reconstruction.colmap_threads)."""
     frames = scene.frames
     mapping = [f for f in frames if f.split == "train"]
     if len(mapping) < MIN_MAPPING_IMAGES:
         raise SfmError(f"scene {scene.name!r}: SfM needs at least {MIN_MAPPING_IMAGES} mapping photos, got "
                        f"{len(mapping)}: COLMAP keeps only points seen in 3 or more photos")
     db_path = work_dir / "database.db"
-    extract(frames, image_dir, db_path, opts)
+    extract(frames, image_dir, db_path, opts, threads)
     match(frames, db_path, work_dir, opts, has_poses=False)
-    po = _pipeline_options(opts)
+    po = pipeline_options(opts)
     po.image_names = [f.name for f in mapping]  # queries never enter the reconstruction
     model_dir = work_dir / "posing"
     model_dir.mkdir()

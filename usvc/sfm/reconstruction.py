@@ -28,12 +28,19 @@ _PAIR_MAX_ANGLE_DEG = 60.0
 MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
 
 
-def colmap_threads(opts: SfmOptions) -> int:
-    """Feature extraction threads: sfm.num_threads when set (> 0), else the process's `threads`
-    setting (COLMAP's -1: all cores). Matching always runs on one thread (see matching_kwargs)."""
+def colmap_threads(opts: SfmOptions, threads: int) -> int:
+    """Feature extraction threads: sfm.num_threads when set (> 0), else `threads`, the caller's
+    thread count (-1, COLMAP's default: all cores). Matching always runs on one thread (see
+    matching_kwargs)."""
+    return opts.num_threads if opts.num_threads > 0 else threads
+
+
+def stage_threads() -> int:
+    """Transitional, for stages/sfm.py and stages/prepare.py until they pass `threads` themselves
+    (then this and the `threads=None` defaults go): the count the stage applied, else -1."""
     from usvc.pipeline import threads
 
-    return opts.num_threads if opts.num_threads > 0 else (threads.applied or -1)
+    return threads.applied or -1
 
 
 def _camera_key(frame: Frame) -> tuple:
@@ -41,7 +48,7 @@ def _camera_key(frame: Frame) -> tuple:
     return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
 
 
-def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
+def register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
     """Cameras, rigs, frames and images in name order, so image ids (which orient every pair in
     geometric verification) do not depend on which extraction thread finishes first."""
     camera_ids: dict[tuple, int] = {}
@@ -77,15 +84,16 @@ def _register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
     return camera_ids
 
 
-def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions) -> None:
-    """SIFT into a fresh database whose cameras are the scene's exact intrinsics."""
-    camera_ids = _register_images(frames, db_path)
+def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions, threads: int) -> None:
+    """SIFT into a fresh database whose cameras are the scene's exact intrinsics, on `threads`
+    threads unless sfm.num_threads is set (see colmap_threads)."""
+    camera_ids = register_images(frames, db_path)
     groups: dict[int, list[str]] = defaultdict(list)
     for f in frames:
         groups[camera_ids[_camera_key(f)]].append(f.name)
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = opts.max_num_features
-    eo.num_threads = colmap_threads(opts)
+    eo.num_threads = colmap_threads(opts, threads)
     eo.use_gpu = False
     for cid, names in groups.items():
         ro = pycolmap.ImageReaderOptions()
@@ -152,7 +160,7 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
     return mode
 
 
-def _pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
+def pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
     """Mapper and triangulator options with every RANSAC seeded, so reruns give the same model."""
     po = pycolmap.IncrementalPipelineOptions()
     po.random_seed = opts.seed
@@ -165,7 +173,7 @@ def _pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
     return po
 
 
-def _posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
+def posed_reconstruction(frames: list[Frame], db_path: Path) -> pycolmap.Reconstruction:
     """An empty model whose image ids are the database's and whose poses are the given ones
     (only the database images among ``frames`` enter it)."""
     by_name = {f.name: f for f in frames}
@@ -201,16 +209,19 @@ def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int)
 
 
 def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
-                has_poses: bool) -> tuple[pycolmap.Reconstruction, dict]:
-    """Extract, match and triangulate (or map); returns the model and timing/strategy stats."""
+                has_poses: bool, threads: int | None = None) -> tuple[pycolmap.Reconstruction, dict]:
+    """Extract (on `threads` threads, see colmap_threads), match and triangulate (or map); returns
+    the model and timing/strategy stats."""
     if len(frames) < MIN_MAPPING_IMAGES:
         raise SfmError(
             f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}: COLMAP keeps only points "
             "seen in 3 or more images (tracks of two views are dropped), and a usable map wants dozens")
+    if threads is None:
+        threads = stage_threads()
     db_path = work_dir / "database.db"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    extract(frames, image_dir, db_path, opts)
+    extract(frames, image_dir, db_path, opts, threads)
     timings["extract_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     strategy = match(frames, db_path, work_dir, opts, has_poses)
@@ -227,10 +238,10 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
         warn_if_poses_disagree(agreement)
     model_dir = work_dir / "colmap_work"
     model_dir.mkdir(exist_ok=True)
-    po = _pipeline_options(opts)
+    po = pipeline_options(opts)
     if mode == "triangulate":
         rec = pycolmap.triangulate_points(
-            _posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
+            posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
             refine_intrinsics=False,
         )
     else:

@@ -74,7 +74,7 @@ def project(g: Gaussians, view: View, sh_degree: int | None = None, eps2d: float
     return Projected(means2d, z, conics, radii, colors, g.opacities)
 
 
-def _bin_tiles(proj: Projected, width: int, height: int, tile: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+def bin_tiles(proj: Projected, width: int, height: int, tile: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
     """Sorted (tile, depth) list of Gaussian ids, with per-tile start and count."""
     dev = proj.means2d.device
     tw, th = math.ceil(width / tile), math.ceil(height / tile)
@@ -197,7 +197,7 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     """Front-to-back alpha compositing of per-Gaussian `features` (N, C); returns (H, W, C + 1)
     with accumulated alpha as the last channel."""
     dev = features.device
-    gid_sorted, starts, counts, tw = _bin_tiles(proj, width, height, tile)
+    gid_sorted, starts, counts, tw = bin_tiles(proj, width, height, tile)
     n, ch = features.shape
     # One packed row per Gaussian (plus a transparent padding row n): one gather per chunk, and one
     # scatter-add in its backward, instead of one per attribute.

@@ -20,10 +20,6 @@ def rgb_to_dc(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb - 0.5) / C0
 
 
-def dc_to_rgb(dc: torch.Tensor) -> torch.Tensor:
-    return dc * C0 + 0.5
-
-
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Colour (N, 3) from coefficients (N, (degree+1)^2, 3) seen along unit directions (N, 3),
     offset by +0.5 and clamped at 0 as the reference renderer does."""
