@@ -64,8 +64,51 @@ def test_cycles_are_found():
     assert code_deps.cycles(graph) == [["a", "b", "c"]]
 
 
-def test_the_config_schema_does_not_load_the_scene_generator():
+def test_the_config_module_loads_no_step():
+    """The config names each group's schema; importing it loads no step's code (a stage imports the
+    options it reads), and neither torch nor OpenCV."""
     code = ("import sys; import usvc.pipeline.config; "
-            "print(sorted(m for m in sys.modules if m.startswith(('usvc.generate.', 'torch', 'cv2'))))")
+            "print(sorted(m for m in sys.modules if m.startswith(('usvc.', 'torch', 'cv2')) "
+            "and not m.startswith(('usvc.pipeline', 'usvc.core')) and m != 'usvc.'))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "['usvc.generate.params']"
+    assert out.strip() == "[]"
+
+
+# The packages in layers: a module imports only from its own package or a lower layer, so no import
+# runs back up (a step never reaches the pipeline shell above it, a stage's inputs never reach a
+# later stage's code).
+LAYERS: tuple[frozenset[str], ...] = tuple(frozenset(layer.split()) for layer in (
+    "core",
+    "generate splat model sfm",
+    "weights prepare keypoints landmarks gaussians",
+    "render",
+    "buffer",
+    "train relocalize",
+    "metrics analysis pretrain",
+    "pipeline",
+    "cli",
+))
+
+
+def _layer(package: str) -> int:
+    return next(i for i, layer in enumerate(LAYERS) if package in layer)
+
+
+def test_every_package_has_a_layer():
+    packages = {p.name for p in (ROOT / "usvc").iterdir() if (p / "__init__.py").is_file()} | {"cli"}
+    assert packages == set().union(*LAYERS)
+
+
+def test_no_import_runs_back_up_a_layer():
+    upward = []
+    for module, imported in code_deps.import_graph().items():
+        if not module.startswith("usvc."):
+            continue
+        here = module.split(".")[1]
+        for other in imported:
+            if other.count(".") == 0:  # `import usvc` (the package's own __init__)
+                continue
+            there = other.split(".")[1]
+            if there != here and _layer(there) >= _layer(here):
+                upward.append(f"{module} imports {other}")
+    assert upward == []

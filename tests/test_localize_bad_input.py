@@ -141,7 +141,7 @@ def test_an_estimated_focal_far_from_the_map_cameras_is_refused(tmp_path: Path,
 
 
 def test_the_train_stage_records_the_focal_range() -> None:
-    from stages.train import focal_range
+    from usvc.train.run import focal_range
 
     K = np.array([[[900.0, 0, 272.0], [0, 900.0, 480.0], [0, 0, 1]], [[450.0, 0, 320.0], [0, 450.0, 240.0], [0, 0, 1]]])
     assert focal_range(K) == [pytest.approx(450 / 640, abs=1e-4), pytest.approx(900 / 960, abs=1e-4)]

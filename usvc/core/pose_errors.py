@@ -15,9 +15,6 @@ import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-# Transitional: stages/metrics.py imports read_poses_txt from here; it goes once that imports it from
-# usvc.core.poses_file.
-from usvc.core.poses_file import read_poses_txt  # noqa: F401
 
 # (name, translation threshold in metres, rotation threshold in degrees)
 METRIC_THRESHOLDS: tuple[tuple[str, float, float], ...] = (

@@ -2,30 +2,26 @@
 
 `conf/<group>/*.yaml` hold the values (DVC tracks them directly); the options dataclass beside each
 step's code (e.g. `usvc/train/options.py`) is the group's schema and the type the step's code
-takes, with defaults equal to `conf/<group>/default.yaml` (a test checks). An unknown key or a
-value of the wrong type fails at compose time; `validate` asks each group's options for values
+takes. Each stage registers the schemas of the groups it reads (`register_configs({...})`, see
+`usvc.pipeline.stage.Stage`) and nothing else, so a stage imports, and DVC reruns it for, only
+its own options modules; the other groups compose as plain values. An unknown key or a value of
+the wrong type fails at compose time; `validate` asks each registered group's options for values
 outside what the step accepts (`problems()`) and names the key.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+import importlib
+from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any
 
+import yaml
 from hydra.core.config_store import ConfigStore
 
-from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
-from usvc.gaussians.options import GaussiansOptions
-from usvc.generate.params import RoomParams
-from usvc.keypoints.options import KeypointOptions
-from usvc.landmarks.options import LandmarksOptions
-from usvc.model.options import ModelOptions
-from usvc.prepare.options import SceneOptions
-from usvc.relocalize.options import RelocalizeOptions
-from usvc.render.options import RenderOptions
-from usvc.sfm.options import SfmOptions
-from usvc.train.options import TrainOptions
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 class ConfigError(UsvcError):
@@ -39,28 +35,81 @@ class Config:
     method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
     data_dir: str = "data"  # where the artifacts go: <data_dir>/<scene>/<stage>
     results_dir: str = "results"  # where the metrics and plots go: <results_dir>/<scene>/
-    scene: SceneOptions = field(default_factory=SceneOptions)  # the scene group: SceneOptions
-    generate: RoomParams = field(default_factory=RoomParams)  # the generate group: RoomParams
-    sfm: SfmOptions = field(default_factory=SfmOptions)  # the sfm group: SfmOptions
-    keypoints: KeypointOptions = field(default_factory=KeypointOptions)  # the keypoints group: KeypointOptions
-    landmarks: LandmarksOptions = field(default_factory=LandmarksOptions)  # the landmarks group: LandmarksOptions
-    model: ModelOptions = field(default_factory=ModelOptions)  # the model group: ModelOptions
-    buffer: BufferOptions = field(default_factory=BufferOptions)  # the buffer group: BufferOptions
-    train: TrainOptions = field(default_factory=TrainOptions)  # the train group: TrainOptions
-    relocalize: RelocalizeOptions = field(default_factory=RelocalizeOptions)  # the relocalize group: RelocalizeOptions
-    gaussians: GaussiansOptions = field(default_factory=GaussiansOptions)  # the gaussians group: GaussiansOptions
-    render: RenderOptions = field(default_factory=RenderOptions)  # the render group: RenderOptions
+    # One entry per config group: its schema is registered by the stage that reads it.
+    scene: Any = None  # the scene group: SceneOptions
+    generate: Any = None  # the generate group: RoomParams
+    sfm: Any = None  # the sfm group: SfmOptions
+    keypoints: Any = None  # the keypoints group: KeypointOptions
+    landmarks: Any = None  # the landmarks group: LandmarksOptions
+    model: Any = None  # the model group: ModelOptions
+    buffer: Any = None  # the buffer group: BufferOptions
+    train: Any = None  # the train group: TrainOptions
+    relocalize: Any = None  # the relocalize group: RelocalizeOptions
+    gaussians: Any = None  # the gaussians group: GaussiansOptions
+    render: Any = None  # the render group: RenderOptions
 
 
 METHODS = ("single", "multiview", "multiview_gs")
+TOP_LEVEL = ("seed", "threads", "method", "data_dir", "results_dir")
+
+# Each config group's schema: the options dataclass of its step, beside the step's code. Named, not
+# imported: a stage imports the ones it reads (tools and tests load them all with `group_schemas`).
+GROUP_SCHEMA_NAMES: dict[str, str] = {
+    "scene": "usvc.prepare.options:SceneOptions",
+    "generate": "usvc.generate.params:RoomParams",
+    "sfm": "usvc.sfm.options:SfmOptions",
+    "keypoints": "usvc.keypoints.options:KeypointOptions",
+    "landmarks": "usvc.landmarks.options:LandmarksOptions",
+    "model": "usvc.model.options:ModelOptions",
+    "buffer": "usvc.buffer.options:BufferOptions",
+    "train": "usvc.train.options:TrainOptions",
+    "relocalize": "usvc.relocalize.options:RelocalizeOptions",
+    "gaussians": "usvc.gaussians.options:GaussiansOptions",
+    "render": "usvc.render.options:RenderOptions",
+}
+GROUPS = tuple(GROUP_SCHEMA_NAMES)
 
 
-def _known_keys() -> list[str]:
+def group_schemas(groups: Any = None) -> dict[str, type]:
+    """Group -> options dataclass, for the named groups (default: all), in pipeline order."""
+    out: dict[str, type] = {}
+    for group in GROUPS if groups is None else groups:
+        module, name = GROUP_SCHEMA_NAMES[group].split(":")
+        out[group] = getattr(importlib.import_module(module), name)
+    return out
+
+
+def register_configs(schemas: dict[str, type] | None = None) -> dict[str, type]:
+    """Register the primary config and each group's base node: the given schemas (default: all of
+    them) typed, every other group an open node that takes its YAML values as they are. Returns the
+    typed schemas."""
+    schemas = group_schemas() if schemas is None else dict(schemas)
+    unknown = sorted(set(schemas) - set(GROUPS))
+    if unknown:
+        raise ValueError(f"not config groups: {unknown}")
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    for group in GROUPS:
+        cs.store(group=group, name=f"base_{group}", node=schemas.get(group, {}))
+    return schemas
+
+
+def _yaml_keys(group: str) -> set[str]:
+    """Keys any of the group's YAML files sets (the keys of a group a stage does not read)."""
+    keys: set[str] = set()
+    for path in (CONF_DIR / group).glob("*.yaml"):
+        data = yaml.safe_load(path.read_text()) or {}
+        keys.update(k for k in data if k != "defaults")
+    return keys
+
+
+def _known_keys(schemas: dict[str, type]) -> list[str]:
     top = [f.name for f in fields(Config)]
-    return top + [f"{g}.{f.name}" for g, schema in GROUP_SCHEMAS.items() for f in fields(schema)]
+    known = [f"{g}.{f.name}" for g, schema in schemas.items() for f in fields(schema)]
+    return top + known + [f"{g}.{k}" for g in GROUPS if g not in schemas for k in sorted(_yaml_keys(g))]
 
 
-def _check_keys(cfg: Any) -> None:
+def _check_keys(cfg: Any, schemas: dict[str, type]) -> None:
     """Every key must be one of the schema's: Hydra's `+key=value` (and `++`) can add keys that the
     schema does not have, which the stages would otherwise ignore or trip over deep inside."""
     import difflib
@@ -69,9 +118,9 @@ def _check_keys(cfg: Any) -> None:
 
     if not isinstance(cfg, DictConfig):
         return
-    known = _known_keys()
+    known = _known_keys(schemas)
     found = [k for k in cfg.keys() if k != "hydra"]
-    found += [f"{g}.{k}" for g in GROUP_SCHEMAS if isinstance(cfg.get(g), DictConfig) for k in cfg[g].keys()]
+    found += [f"{g}.{k}" for g in GROUPS if isinstance(cfg.get(g), DictConfig) for k in cfg[g].keys()]
     for key in found:
         if key not in known:
             near = difflib.get_close_matches(key, known, n=1)
@@ -80,21 +129,23 @@ def _check_keys(cfg: Any) -> None:
 
 
 def group_options(cfg: Any, group: str) -> Any:
-    """The options object of one config group (an instance of its step's options dataclass): how
-    every stage turns its config into the options its step's code takes."""
+    """The options object of one config group (an instance of its step's options dataclass when
+    the group's schema is registered): how a stage turns its config into the options its step takes."""
     from omegaconf import DictConfig, OmegaConf
 
     node = cfg[group]
     return OmegaConf.to_object(node) if isinstance(node, DictConfig) else node
 
 
-def validate(cfg: Any) -> None:
+def validate(cfg: Any, schemas: dict[str, type] | None = None) -> None:
     """Reject unknown keys and values outside what each step accepts (Hydra has checked the types):
-    each group's options dataclass says what it accepts (`problems()`)."""
-    _check_keys(cfg)
+    each registered group's options dataclass says what it accepts (`problems()`). `schemas`: the
+    groups the caller registered (default: all)."""
+    schemas = group_schemas() if schemas is None else schemas
+    _check_keys(cfg, schemas)
     if cfg.method not in METHODS:
         raise ConfigError(f"config key method={cfg.method!r} is not one of {list(METHODS)}")
-    for group in GROUP_SCHEMAS:
+    for group in schemas:
         problems = group_options(cfg, group).problems()
         if problems:
             raise ConfigError("; ".join(f"config key {group}.{p}" for p in problems))
@@ -106,42 +157,13 @@ def validate(cfg: Any) -> None:
         raise ConfigError(f"config key {err}") from None
 
 
-# Each config group's schema: the options dataclass of its step, beside the step's code.
-GROUP_SCHEMAS: dict[str, type] = {
-    "scene": SceneOptions,
-    "generate": RoomParams,
-    "sfm": SfmOptions,
-    "keypoints": KeypointOptions,
-    "landmarks": LandmarksOptions,
-    "model": ModelOptions,
-    "buffer": BufferOptions,
-    "train": TrainOptions,
-    "relocalize": RelocalizeOptions,
-    "gaussians": GaussiansOptions,
-    "render": RenderOptions,
-}
-
-
-def register_configs() -> None:
-    """Schemas for the primary config and each group, referenced from the YAML defaults lists."""
-    cs = ConfigStore.instance()
-    cs.store(name="base_config", node=Config)
-    for group, schema in GROUP_SCHEMAS.items():
-        cs.store(group=group, name=f"base_{group}", node=schema)
-
-
-
-
 def compose_for_script(scene: str, overrides: list[str]) -> Any:
     """The config a stage would see for ``scene=<scene> <overrides>``, for scripts outside Hydra's
-    entry points (benchmarks): the same schema and the same validation."""
-    from pathlib import Path
-
+    entry points (benchmarks): every group typed, the same validation."""
     from hydra import compose, initialize_config_dir
 
     register_configs()
-    conf_dir = Path(__file__).resolve().parents[2] / "conf"
-    with initialize_config_dir(config_dir=str(conf_dir), version_base=None):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose(config_name="config", overrides=[f"scene={scene}", *overrides])
     validate(cfg)
     return cfg

@@ -1,4 +1,17 @@
-"""The shared shell of every stage entry point: validate config, run, report errors in one line."""
+"""The shared shell of every stage entry point (`stages/<stage>.py`).
+
+A stage names the config groups it reads and a function that runs its step; the shell registers
+those groups' schemas (and no others: `usvc.pipeline.config`), answers `--help`, validates the
+config, sets the thread pools, writes the artifact folder atomically (a failed or killed stage
+leaves nothing half-written), times the step and records its peak memory beside the step's own
+figures in `results/<scene>/<stage>.json`, and turns a UsvcError into one log line and exit 1.
+
+    stage = Stage("keypoints", keypoints=KeypointOptions)
+
+    @stage.main
+    def main(cfg, paths, out):   # out: the artifact folder being written
+        return run(Inputs(tracks=paths.tracks_file), out, stage.options(cfg, "keypoints"))
+"""
 
 from __future__ import annotations
 
@@ -7,8 +20,11 @@ import functools
 import logging
 import signal
 import sys
+import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from pathlib import Path
+from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
@@ -17,12 +33,15 @@ from omegaconf import DictConfig, OmegaConf
 from usvc.core.atomic import atomic_dir
 from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
-from usvc.pipeline.config import validate
+from usvc.pipeline.config import group_options, register_configs, validate
 from usvc.pipeline.logs import quiet_third_party
 from usvc.pipeline.metrics_file import write_json
 from usvc.pipeline.paths import ScenePaths
 
 log = logging.getLogger("usvc")
+
+NOT_COMPUTED = "NOT_COMPUTED.txt"
+StepFn = Callable[[DictConfig, ScenePaths, "Path | None"], "dict[str, Any] | None"]
 
 
 def is_multirun() -> bool:
@@ -38,48 +57,6 @@ def scene_paths(cfg: DictConfig) -> ScenePaths:
     return ScenePaths(Path(cfg.data_dir), Path(cfg.results_dir), cfg.scene.name)
 
 
-def stage_main(fn: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
-    """Validate, run, and turn a UsvcError into one log line and exit status 1 (Ctrl-C: one line, 130)."""
-
-    @functools.wraps(fn)
-    def wrapper(cfg: DictConfig) -> None:
-        # A file-size limit then fails the write (EFBIG, below) instead of killing the process.
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        try:
-            validate(cfg)
-            log.debug("threads: %d", threads.apply(threads.resolve(cfg.threads)))
-            quiet_third_party(verbose=log.isEnabledFor(logging.DEBUG) or bool(cfg.sfm.verbose))
-            log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
-            fn(cfg)
-        except UsvcError as err:
-            log.error("%s failed: %s", Path(sys.argv[0]).stem, err)
-            sys.exit(1)
-        except OSError as err:
-            if err.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
-                raise
-            where = f" writing {err.filename}" if err.filename else ""
-            log.error("%s failed: %s%s (disk full or a file-size limit), nothing written",
-                      Path(sys.argv[0]).stem, err.strerror, where)
-            sys.exit(1)
-        except KeyboardInterrupt:  # artifacts are written atomically, so nothing half-written stays
-            log.error("%s interrupted, nothing written", Path(sys.argv[0]).stem)
-            sys.exit(130)
-
-    return wrapper
-
-
-def stage_outputs(cfg: DictConfig, stage: str, artifact: str | None = None) -> tuple[Path, Path]:
-    """(artifact dir, metrics file): the DVC-tracked paths, or this job's own under --multirun.
-
-    `artifact` names the ScenePaths directory when it differs from the stage (train -> map).
-    """
-    name = artifact or stage
-    if is_multirun():
-        return job_dir() / name, job_dir() / "metrics.json"
-    paths = scene_paths(cfg)
-    return getattr(paths, name), paths.metrics(stage)
-
-
 def peak_memory_mb() -> float:
     """Peak resident memory of this process (ru_maxrss is KiB on Linux)."""
     import resource
@@ -87,20 +64,90 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-NOT_COMPUTED = "NOT_COMPUTED.txt"
-
-
-def skip_unless_rendered_views(cfg: DictConfig, stage: str) -> bool:
+def skipped_without_rendered_views(out: Path, stage: str, method: str) -> dict[str, Any]:
     """The 3DGS fit and the novel-view renders feed only `method=multiview_gs`: with
-    `buffer.rendered_views: false` the stage writes an empty artifact saying why, and its metrics
-    say `computed: false`, in milliseconds instead of minutes. Returns True when it skipped."""
-    if cfg.buffer.rendered_views:
-        return False
-    reason = (f"{stage} not computed: buffer.rendered_views is false (method={cfg.method}); "
+    `buffer.rendered_views: false` the stage writes an artifact saying why (NOT_COMPUTED.txt) and
+    its record says `computed: false`, in milliseconds instead of minutes."""
+    reason = (f"{stage} not computed: buffer.rendered_views is false (method={method}); "
               "method=multiview_gs uses it")
-    out, metrics_path = stage_outputs(cfg, stage)
-    with atomic_dir(out) as tmp:
-        (tmp / NOT_COMPUTED).write_text(reason + "\n")
-    write_json(metrics_path, {"computed": False, "reason": reason})
+    (out / NOT_COMPUTED).write_text(reason + "\n")
     log.info("%s", reason)
-    return True
+    return {"computed": False, "reason": reason}
+
+
+class Stage:
+    """One pipeline stage: its name, the config groups it reads, the artifact folder it writes."""
+
+    def __init__(self, name: str, artifact: str | None = "", record: str = "", **schemas: type) -> None:
+        """`artifact`: the ScenePaths folder it writes ("" = the stage's name; None = none: the
+        step writes where its options say, e.g. generate); `record`: the name of its
+        results/<scene>/<record>.json ("" = the stage's name); `schemas`: group -> options dataclass."""
+        self.name = name
+        self.artifact = name if artifact == "" else artifact
+        self.record = record or name
+        self.schemas = register_configs(schemas)
+        self.threads = -1  # the thread count the shell applied (from `threads=`), once it runs
+
+    def options(self, cfg: DictConfig, group: str) -> Any:
+        """The options object of one of the groups this stage reads."""
+        if group not in self.schemas:
+            raise KeyError(f"stage {self.name} does not read config group {group}")
+        return group_options(cfg, group)
+
+    def outputs(self, cfg: DictConfig) -> tuple[Path | None, Path]:
+        """(artifact folder, record file): the DVC-tracked paths, or this job's own under --multirun."""
+        if is_multirun():
+            return (None if self.artifact is None else job_dir() / self.artifact), job_dir() / "metrics.json"
+        paths = scene_paths(cfg)
+        return (None if self.artifact is None else getattr(paths, self.artifact)), paths.metrics(self.record)
+
+    def _run(self, fn: StepFn, cfg: DictConfig) -> None:
+        validate(cfg, self.schemas)
+        self.threads = threads.apply(threads.resolve(cfg.threads))
+        log.debug("threads: %d", self.threads)
+        verbose = log.isEnabledFor(logging.DEBUG) or ("sfm" in self.schemas and bool(cfg.sfm.verbose))
+        quiet_third_party(verbose=verbose)
+        log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
+        out, record = self.outputs(cfg)
+        t0 = time.perf_counter()
+        with atomic_dir(out) if out is not None else nullcontext(None) as tmp:
+            stats = fn(cfg, scene_paths(cfg), tmp) or {}
+        write_json(record, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+
+    def main(self, fn: StepFn) -> Callable[[], None]:
+        """The stage's entry point: `--help` prints the options it reads; otherwise Hydra composes
+        the config and the step runs. A UsvcError is one log line and exit status 1 (Ctrl-C: 130)."""
+        import hydra
+
+        @hydra.main(version_base=None, config_path=str(Path(__file__).resolve().parents[2] / "conf"),
+                    config_name="config")
+        @functools.wraps(fn)
+        def composed(cfg: DictConfig) -> None:
+            # A file-size limit then fails the write (EFBIG, below) instead of killing the process.
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+            try:
+                self._run(fn, cfg)
+            except UsvcError as err:
+                log.error("%s failed: %s", self.name, err)
+                sys.exit(1)
+            except OSError as err:
+                if err.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+                    raise
+                where = f" writing {err.filename}" if err.filename else ""
+                log.error("%s failed: %s%s (disk full or a file-size limit), nothing written",
+                          self.name, err.strerror, where)
+                sys.exit(1)
+            except KeyboardInterrupt:  # artifacts are written atomically, so nothing half-written stays
+                log.error("%s interrupted, nothing written", self.name)
+                sys.exit(130)
+
+        def entry() -> None:
+            args = sys.argv[1:]
+            if "--help" in args or "-h" in args:
+                from usvc.pipeline.stage_help import stage_help
+
+                print(stage_help(self.name, [a for a in args if a not in ("--help", "-h")], self.schemas))
+                return
+            composed()
+
+        return entry

@@ -1,9 +1,9 @@
 """`python -m stages.<stage> --help`: the options the stage reads, each with its default and meaning.
 
 The meaning is the comment on the field's line in the step's options dataclass (or the comment
-block just above it): the dataclass is the one schema, so the help cannot drift from it. Which
-groups a stage reads comes from its `params` in dvc.yaml, the same list that decides when DVC
-reruns it. Hydra's own help stays available as `--hydra-help`.
+block just above it): the dataclass is the one schema, so the help cannot drift from it. The
+groups shown are the ones the stage registers (`usvc.pipeline.stage.Stage`), the same ones its
+dvc.yaml params track. Hydra's own help stays available as `--hydra-help`.
 """
 
 from __future__ import annotations
@@ -17,10 +17,9 @@ from pathlib import Path
 
 import yaml
 
-from usvc.pipeline.config import GROUP_SCHEMAS, Config
+from usvc.pipeline.config import GROUPS, TOP_LEVEL, Config, group_schemas
 
 ROOT = Path(__file__).resolve().parents[2]
-TOP_LEVEL = ("seed", "threads", "method", "data_dir", "results_dir")
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -68,7 +67,7 @@ def groups_read(stage: str, dvc_yaml: Path = ROOT / "dvc.yaml") -> list[str]:
         if len(parts) >= 3 and parts[0] == "conf":
             tracked.add(parts[1].replace("${item}", "scene"))
     tracked.add("scene")
-    return [g for g in GROUP_SCHEMAS if g in tracked]
+    return [g for g in GROUPS if g in tracked]
 
 
 def choices(group: str, conf: Path = ROOT / "conf") -> list[str]:
@@ -97,8 +96,9 @@ def _value(cfg, group: str | None, f) -> str:
     return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
 
 
-def stage_help(stage: str, overrides: list[str] | None = None) -> str:
-    """The help text: every option the stage reads, with the value this command line would use."""
+def stage_help(stage: str, overrides: list[str] | None = None, schemas: dict[str, type] | None = None) -> str:
+    """The help text: every option the stage reads (`schemas`: the groups it registers; default: the
+    groups its dvc.yaml params track), with the value this command line would use."""
     cfg = _composed(list(overrides or []))
     out = [f"python -m stages.{stage} scene=<name> [key=value ...]", "",
            f"Runs the {stage} stage on one scene (dvc repro runs it for every scene in params.yaml).",
@@ -109,8 +109,8 @@ def stage_help(stage: str, overrides: list[str] | None = None) -> str:
         out.append(f"  {name}={_value(cfg, None, top[name])}  # {top_docs.get(name, '')}")
     out.append(f"  method: one of {', '.join(choices('method'))} (sets train.bundle_weight, relocalize.refine, "
                "buffer.rendered_views)")
-    for group in groups_read(stage):
-        schema = GROUP_SCHEMAS[group]
+    schemas = group_schemas(groups_read(stage)) if schemas is None else schemas
+    for group, schema in schemas.items():
         module = inspect.getmodule(schema)
         where = Path(inspect.getfile(schema)).relative_to(ROOT).as_posix() if module else "?"
         options = choices(group)

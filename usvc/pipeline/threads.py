@@ -165,7 +165,6 @@ def export_to_env(n: int) -> None:
         os.environ[EXPORT_MARK] = str(n)
 
 
-applied: int | None = None  # what `apply` set in this process (COLMAP's options read it)
 
 
 def apply(n: int) -> int:
@@ -173,8 +172,6 @@ def apply(n: int) -> int:
     import cv2
     import torch
 
-    global applied
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
-    applied = n
     return n

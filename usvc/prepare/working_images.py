@@ -17,13 +17,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from usvc.core.artifact_names import SCENE_H5
 from usvc.core.errors import SceneError
 from usvc.core.images import read_image_bgr
 from usvc.core.scene import Frame, Scene
-from usvc.core.scene_file import IMAGE_DIR, SCENE_FILE, read_scene_h5, write_scene_h5
+from usvc.core.scene_file import IMAGE_DIR, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
 from usvc.sfm.posing import pose_scene
-from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions, stage_threads
+from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ def _read_depth(frame: Frame) -> np.ndarray | None:
 
 
 def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str = "crop",
-                  sfm: SfmOptions | None = None, threads: int | None = None) -> dict:
+                  sfm: SfmOptions | None = None, threads: int = -1) -> dict:
     """Write undistorted, resized images and scene.h5 into `out_dir` (which must be empty).
 
     `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
@@ -55,7 +56,7 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov
     """
     if not scene.has_poses:
         return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm,
-                                stage_threads() if threads is None else threads)
+                                threads)
     return _write_prepared(scene, out_dir, working_width, undistort_fov)
 
 
@@ -117,7 +118,7 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
             contents.setdefault(hashlib.sha1(image.tobytes()).hexdigest(), []).append(frame.name)
     check_distinct_mapping_images(scene.name, contents)
     prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
-    write_scene_h5(out_dir / SCENE_FILE, prepared, depths, source_cameras=[f.camera for f in scene.frames])
+    write_scene_h5(out_dir / SCENE_H5, prepared, depths, source_cameras=[f.camera for f in scene.frames])
     n_train = len(prepared.split("train"))
     stats = {
         "frames": len(out_frames),
@@ -142,7 +143,7 @@ def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_
         resized_dir = Path(work) / "resized"
         resized_dir.mkdir()
         _write_prepared(scene, resized_dir, working_width, undistort_fov)
-        resized = read_scene_h5(resized_dir)
+        resized = read_scene_h5(resized_dir / SCENE_H5)
         # SfM calibrates the importer's camera model (SIMPLE_RADIAL): keep it, at working size
         source = {f.name: f for f in scene.frames}
         resized = replace(resized, frames=[

@@ -35,14 +35,6 @@ def colmap_threads(opts: SfmOptions, threads: int) -> int:
     return opts.num_threads if opts.num_threads > 0 else threads
 
 
-def stage_threads() -> int:
-    """Transitional, for stages/sfm.py and stages/prepare.py until they pass `threads` themselves
-    (then this and the `threads=None` defaults go): the count the stage applied, else -1."""
-    from usvc.pipeline import threads
-
-    return threads.applied or -1
-
-
 def _camera_key(frame: Frame) -> tuple:
     c = frame.camera
     return (c.model, c.width, c.height, tuple(round(v, 6) for v in c.params))
@@ -209,15 +201,13 @@ def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int)
 
 
 def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
-                has_poses: bool, threads: int | None = None) -> tuple[pycolmap.Reconstruction, dict]:
+                has_poses: bool, threads: int) -> tuple[pycolmap.Reconstruction, dict]:
     """Extract (on `threads` threads, see colmap_threads), match and triangulate (or map); returns
     the model and timing/strategy stats."""
     if len(frames) < MIN_MAPPING_IMAGES:
         raise SfmError(
             f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}: COLMAP keeps only points "
             "seen in 3 or more images (tracks of two views are dropped), and a usable map wants dozens")
-    if threads is None:
-        threads = stage_threads()
     db_path = work_dir / "database.db"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()

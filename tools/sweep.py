@@ -1,7 +1,7 @@
 """Stage-aware sweep: rerun only the stages an override changes, on the upstream DVC artifacts.
 
-    python -m stages.sweep --multirun scene=mini keypoints.tau=1.0,1.5,2.0
-    python -m stages.sweep --multirun relocalize.refine_radius_px=4,8,16
+    python -m tools.sweep --multirun scene=mini keypoints.tau=1.0,1.5,2.0
+    python -m tools.sweep --multirun relocalize.refine_radius_px=4,8,16
 
 Per job (its Hydra output dir): dvc.yaml says which stage is the first one any of the job's
 overrides changes (usvc.pipeline.plan); the stages before it are reused from data/<scene>/
@@ -19,19 +19,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-import hydra
 import yaml
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
 
 from usvc.core.errors import UsvcError
-from usvc.pipeline.config import register_configs
-from usvc.pipeline.metrics_file import read_metrics, write_json
+from usvc.pipeline.config import group_schemas
+from usvc.pipeline.metrics_file import read_metrics
 from usvc.pipeline.plan import StagePlan, first_affected_stage, load_plan, split_plan
-from usvc.pipeline.stage import job_dir, stage_main
+from usvc.pipeline.stage import Stage, job_dir
 
 log = logging.getLogger("usvc")
-register_configs()
+# Every group typed: an override of any stage's option is checked before a job starts. The job's
+# record (the shell writes what `main` returns) is <job>/metrics.json.
+stage = Stage("sweep", artifact=None, **group_schemas())
 
 ROOT = Path(__file__).resolve().parents[1]  # where dvc.yaml, params.yaml and conf/ live
 LOG_TAIL_LINES = 20
@@ -136,9 +136,8 @@ def job_metrics(results: Path, rerun: tuple[StagePlan, ...], first: str) -> dict
     return out
 
 
-@hydra.main(version_base=None, config_path="../conf", config_name="config")
-@stage_main
-def main(cfg: DictConfig) -> None:
+@stage.main
+def main(cfg, paths, out) -> dict[str, Any]:
     job = job_dir().resolve()
     scene = cfg.scene.name
     overrides = list(HydraConfig.get().overrides.task)
@@ -160,9 +159,9 @@ def main(cfg: DictConfig) -> None:
         run_stage(st, forwarded, job)
 
     metrics = job_metrics(job / "results" / scene, rerun, first)
-    write_json(job / "metrics.json", metrics)
     log.info("sweep %s: %s", job, ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in metrics.items() if k.startswith(("acc_", "median_rot"))))
+    return metrics
 
 
 if __name__ == "__main__":

@@ -1,0 +1,1 @@
+"""Tools around the pipeline, run from the repository root (`python -m tools.<name>`)."""
