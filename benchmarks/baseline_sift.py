@@ -34,9 +34,8 @@ from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.logs import script_logging  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.relocalize.queries_file import QueryStats  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
 from usvc.sfm.reconstruction import SfmOptions  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.sfm.tracks import read_median_depth  # noqa: E402
 
 
 def mean_std(summaries: list[dict]) -> tuple[dict, dict]:
@@ -58,8 +57,8 @@ def main() -> None:
     script_logging()
     cfg = compose_for_script(args.scene, args.overrides)
     paths = scene_paths(cfg)
-    scene = read_scene_h5(paths.prepared)
-    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    scene = read_scene_h5(paths.scene_file)
+    median_depth = read_median_depth(paths.tracks_file)
     opts = SfmOptions(**cfg.sfm)
     with tempfile.TemporaryDirectory(prefix="usvc-baseline-") as work:
         # threads=-1: COLMAP's SIFT on all cores, unless sfm.num_threads says otherwise

@@ -40,10 +40,10 @@ from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.sfm.tracks import read_median_depth  # noqa: E402
 
 ROT_DEG, TRANS_FRAC = 5.0, 0.03
 TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera axes after turning the image clockwise
@@ -75,9 +75,10 @@ def _answer(est, kind: str, scene: str, R_gt=None, t_gt=None, depth: float = 1.0
 
 
 def run_scene(scene_dir: Path, foreign: list[Path], noise: int, seed: int, options: RelocalizeOptions) -> list[dict]:
-    scene = read_scene_h5(scene_dir / "prepared")
-    depth = median_scene_depth(read_tracks(scene_dir / "sfm" / "tracks.h5"))
-    reloc = Relocalizer(scene_dir / "map" / "map.pt", options=options)
+    paths = ScenePaths.of_scene_dir(scene_dir)
+    scene = read_scene_h5(paths.scene_file)
+    depth = read_median_depth(paths.tracks_file)
+    reloc = Relocalizer(paths.map_file, options=options)
     name = scene.name
     rows = []
     queries = scene.split("test")

@@ -36,8 +36,7 @@ from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.logs import script_logging  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.sfm.tracks import read_median_depth, read_tracks  # noqa: E402
 from usvc.weights import load_configured_encoder  # noqa: E402
 
 PROBES = {"small": (0.5, None, "ace"), "default": (1.0, None, "ace"), "xfeat": (1.0, None, "xfeat")}
@@ -86,17 +85,17 @@ def main() -> None:
     cfg = compose_for_script(args.scene, args.overrides)
     torch.manual_seed(0)
     paths = scene_paths(cfg)
-    scene = read_scene_h5(paths.prepared)
-    tracks = read_tracks(paths.sfm / "tracks.h5")
-    median_depth = median_scene_depth(tracks)
-    trained = set(read_buffer_image_names(paths.buffer / "buffer.h5"))
+    scene = read_scene_h5(paths.scene_file)
+    tracks = read_tracks(paths.tracks_file)
+    median_depth = read_median_depth(paths.tracks_file)
+    trained = set(read_buffer_image_names(paths.buffer_file))
     mapping = scene.split("train")
-    reloc = Relocalizer(paths.map / "map.pt", cfg.model.encoder_weights)
+    reloc = Relocalizer(paths.map_file, cfg.model.encoder_weights)
     groups = {"training_views": _spread([f for f in mapping if f.name in trained], args.views),
               "heldout_mapping_views": _spread([f for f in mapping if f.name not in trained], args.views),
               "queries": scene.split("test")}
     report: dict = {"scene": scene.name, "median_depth": median_depth, "working_short_side": reloc.short_side,
-                    "buffer": read_buffer_attrs(paths.buffer / "buffer.h5"),
+                    "buffer": read_buffer_attrs(paths.buffer_file),
                     "fit": {k: _group(reloc, v, tracks, median_depth) for k, v in groups.items()}}
     images = {f.name: _gray(f.image_path) for f in _spread(mapping, 48)}
     heldout = {f.name: _gray(f.image_path) for f in groups["heldout_mapping_views"]}

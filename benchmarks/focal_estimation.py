@@ -25,9 +25,9 @@ from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.sfm.tracks import read_median_depth  # noqa: E402
 
 
 def main() -> None:
@@ -37,9 +37,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    scene = read_scene_h5(args.scene_dir / "prepared")
-    depth = median_scene_depth(read_tracks(args.scene_dir / "sfm" / "tracks.h5"))
-    reloc = Relocalizer(args.scene_dir / "map" / "map.pt")
+    paths = ScenePaths.of_scene_dir(args.scene_dir)
+    scene = read_scene_h5(paths.scene_file)
+    depth = read_median_depth(paths.tracks_file)
+    reloc = Relocalizer(paths.map_file)
     queries = scene.split("test")
     report: dict = {"scene_dir": str(args.scene_dir), "n_queries": len(queries), "threads": args.threads}
     focal_err = []

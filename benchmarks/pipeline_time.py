@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from usvc.pipeline.metrics_file import read_metrics  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
 
 MAPPING = ("prepare", "sfm", "keypoints", "buffer", "train")
 QUERYING = ("relocalize", "metrics")
@@ -123,7 +124,7 @@ def fresh_repro(out: Path) -> None:
         scenes = yaml.safe_load((clone / "params.yaml").read_text())["scenes"]
         metrics = {}
         for scene in scenes:
-            path = clone / "results" / scene / "metrics.json"
+            path = ScenePaths(clone / "data", clone / "results", scene).metrics("metrics")
             if path.exists():
                 values = json.loads(path.read_text())
                 metrics[scene] = {k: v for k, v in values.items()
@@ -186,7 +187,7 @@ def main() -> None:
         "threads_env": env.get("OMP_NUM_THREADS", "unset"),
         "cpu": platform.processor() or platform.machine(),
     }
-    reloc = ROOT / "results" / name / "relocalize.json"
+    reloc = ScenePaths(ROOT / "data", ROOT / "results", name).metrics("relocalize")
     if "relocalize" in args.stages and reloc.exists():
         stats = read_metrics(reloc)  # figures and the stage's own per-query timing (model loading excluded)
         result["ms_per_query"] = round(stats["ms_per_query"], 1)

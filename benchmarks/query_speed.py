@@ -30,6 +30,7 @@ from _report import scene_of, write_report  # noqa: E402
 
 from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 
@@ -41,7 +42,7 @@ def _megabytes(path: Path) -> float:
 
 def _photos(scene_dir: Path, size: tuple[int, int] | None) -> list[tuple[np.ndarray, tuple]]:
     out = []
-    for f in read_scene_h5(scene_dir / "prepared").split("test"):
+    for f in read_scene_h5(ScenePaths.of_scene_dir(scene_dir).scene_file).split("test"):
         rgb = cv2.cvtColor(read_image_bgr(f.image_path), cv2.COLOR_BGR2RGB)
         (fx, fy), (cx, cy) = f.camera.focal, f.camera.principal_point
         if size is not None:
@@ -63,20 +64,20 @@ def main() -> None:
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     photos = _photos(args.scene_dir, size)
+    paths = ScenePaths.of_scene_dir(args.scene_dir)
     rows = {}
     for refine in args.refine:
         options = RelocalizeOptions(refine="features", features_extractor="opencv") if refine == "features-opencv" \
             else RelocalizeOptions(refine=refine)
-        reloc = Relocalizer(args.scene_dir / "map" / "map.pt", options=options)
+        reloc = Relocalizer(paths.map_file, options=options)
         for rgb, intr in photos[: args.warmup]:
             reloc.localize(rgb, intr)
         secs = [reloc.localize(rgb, intr).seconds for rgb, intr in photos]
         rows[refine] = {k: float(np.median([s.get(k, 0.0) for s in secs])) for k in secs[0]}
         print(f"{refine:9s} " + "  ".join(f"{k} {1000 * v:.0f} ms" for k, v in rows[refine].items()))
     h, w = photos[0][0].shape[:2]
-    sizes = {"map_head_mb": _megabytes(args.scene_dir / "map" / "map.pt"),
-             "landmarks_mb": _megabytes(args.scene_dir / "landmarks"),
-             "sfm_model_mb": _megabytes(args.scene_dir / "sfm" / "model")}
+    sizes = {"map_head_mb": _megabytes(paths.map_file), "landmarks_mb": _megabytes(paths.landmarks),
+             "sfm_model_mb": _megabytes(paths.sfm / "model")}
     print({k: round(v, 2) for k, v in sizes.items()})
     name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "")
     write_report(f"query_speed_{name}", {"scene": scene_of(args.scene_dir), "queries": len(photos),

@@ -35,8 +35,8 @@ from usvc.core.poses_file import read_poses_txt  # noqa: E402
 from usvc.core.scene import Frame  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.metrics.alignment import align_and_compare  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.pipeline.paths import SCENE_H5, TRACKS_H5  # noqa: E402
+from usvc.sfm.tracks import read_median_depth  # noqa: E402
 
 
 def _file_name(name: str) -> str:
@@ -89,7 +89,7 @@ def main() -> None:
     parser.add_argument("--given-sfm", type=Path, help="the given scene's sfm folder (median depth for the 3 %% rule)")
     parser.add_argument("--out", type=Path, help="write the JSON here too")
     args = parser.parse_args()
-    given, sfm = read_scene_h5(args.given), read_scene_h5(args.sfm)
+    given, sfm = read_scene_h5(args.given / SCENE_H5), read_scene_h5(args.sfm / SCENE_H5)
     try:
         names, matched_by = match_photos(given.frames, sfm.frames)
     except UsvcError as e:
@@ -107,7 +107,7 @@ def main() -> None:
     if args.relocalized:
         if args.given_sfm is None:
             parser.error("--relocalized needs --given-sfm (the median scene depth of the given poses)")
-        depth = median_scene_depth(read_tracks(args.given_sfm / "tracks.h5"))
+        depth = read_median_depth(args.given_sfm / TRACKS_H5)
         truth = {f.name: f for f in given.split("test")}
         runs = []
         for path in args.relocalized:

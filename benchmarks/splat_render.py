@@ -25,6 +25,7 @@ from _report import write_report  # noqa: E402
 
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.gaussians.fit import image_loss, load_fit_images  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.splat.gsplat_backend import gsplat_available, render_gsplat  # noqa: E402
 from usvc.splat.ply_file import read_splat_ply  # noqa: E402
 from usvc.splat.rasterize import bin_tiles, project, render  # noqa: E402
@@ -50,9 +51,9 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--tile", type=int, default=8)
     args = ap.parse_args()
-    root = Path(args.data_dir) / args.scene
-    g = read_splat_ply(root / "gaussians" / "splat.ply")
-    frames = read_scene_h5(root / "prepared").split("train")[: args.views]
+    paths = ScenePaths.of_scene_dir(Path(args.data_dir) / args.scene)
+    g = read_splat_ply(paths.splat_file)
+    frames = read_scene_h5(paths.scene_file).split("train")[: args.views]
     views = load_fit_images(frames, args.width)
     v0 = views[0].view
     proj = project(g, v0)

@@ -43,8 +43,7 @@ from usvc.model.head import Head  # noqa: E402
 from usvc.pipeline import threads as thread_policy  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
-from usvc.sfm.median_depth import median_scene_depth  # noqa: E402
-from usvc.sfm.tracks import read_tracks  # noqa: E402
+from usvc.sfm.tracks import read_median_depth  # noqa: E402
 from usvc.train.trainer import TrainOptions, train_head  # noqa: E402
 
 
@@ -74,11 +73,11 @@ def main() -> None:
     cfg = compose_for_script(args.scene, args.overrides)
     threads = thread_policy.apply(thread_policy.resolve(cfg.threads))
     paths = scene_paths(cfg)
-    buffer_file = paths.buffer / "buffer.h5"
+    buffer_file = paths.buffer_file
     if not buffer_file.is_file():
         raise SystemExit(f"{buffer_file} is missing: run the pipeline up to the buffer stage first")
     buf = read_buffer(buffer_file)
-    median_depth = median_scene_depth(read_tracks(paths.sfm / "tracks.h5"))
+    median_depth = read_median_depth(paths.tracks_file)
     configured = TrainOptions(**cfg.train)
     head_width, head_blocks = cfg.model.head_width, cfg.model.head_blocks
     timed = dataclasses.replace(configured, iterations=args.iterations)

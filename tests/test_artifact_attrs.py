@@ -82,7 +82,7 @@ def _render_h5(d: Path) -> Path:
     views = [NovelView(source="train/a.png", R=ROT, t=np.zeros(3), K=CAM.K, rgb=np.zeros((6, 8, 3), np.uint8),
                        depth=np.ones((6, 8), np.float32), keypoint_ids=np.array([0, 1], np.int32),
                        keypoint_uv=np.full((2, 2), 3.5, np.float32), angle_deg=5.0, translation=0.1)] * 2
-    write_rendered_views(d, views)
+    write_rendered_views(d / "render.h5", views)
     return d / "render.h5"
 
 

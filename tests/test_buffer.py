@@ -50,7 +50,7 @@ SHORT_SIDE, SEED = 240, 3
 
 
 def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     a = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     assert a.features.shape == (1000, encoder.out_channels) and a.features.dtype == np.float16
     assert len(a.view_image) == 7  # ceil(1000 / 150) augmented views over 3 images
@@ -67,7 +67,7 @@ def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
 def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encoder):
     """Augmented cameras keep the source camera's centre, and every sampled cell's ray, carried
     back into the source camera, lands inside the source image (padding is never sampled)."""
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     for v in range(len(buf.view_image)):
         frame = frames[buf.view_image[v]]
@@ -82,7 +82,7 @@ def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encod
 
 
 def test_features_are_the_encoders_at_the_cell(scene, encoder):
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     opts = BufferOptions(size=150, samples_per_image=150, scale_min=1.0, scale_max=1.0, max_rotation_deg=0.0,
                          brightness_min=1.0, brightness_max=1.0, contrast_min=1.0, contrast_max=1.0)
     buf = fill_buffer(frames, encoder, opts, 240, seed=1)
@@ -117,7 +117,7 @@ def _keypoints_on_surface(prepared, frames, n=60, seed=0):
 
     rng = np.random.default_rng(seed)
     f0 = frames[0]
-    depth = read_depth(prepared, 0)
+    depth = read_depth(prepared / "scene.h5", 0)
     h, w = depth.shape
     uv = np.stack([rng.uniform(20, w - 20, n), rng.uniform(20, h - 20, n)], axis=1)
     d = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
@@ -131,9 +131,9 @@ def _keypoints_on_surface(prepared, frames, n=60, seed=0):
 def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, encoder, tmp_path):
     from usvc.core.scene_file import read_depth
 
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     kp, n = _keypoints_on_surface(scene, frames)
-    depths = [read_depth(scene, i) for i in range(len(frames))]
+    depths = [read_depth(scene / "scene.h5", i) for i in range(len(frames))]
     buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED, keypoints=kp, depths=depths)
     plain = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     np.testing.assert_array_equal(buf.features, plain.features)  # keypoints do not disturb pixel sampling
@@ -157,7 +157,7 @@ def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, enc
 
 
 def test_without_depth_only_track_observations_are_used(scene, encoder):
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     kp, _ = _keypoints_on_surface(scene, frames)
     buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED, keypoints=kp)
     assert set(buf.view_image[buf.kp_view].tolist()) == {0} and not buf.kp_from_depth.any()
@@ -176,7 +176,7 @@ def test_keypoint_feature_is_the_cell_feature_at_a_cell_centre():
 
 
 def test_heldout_cells_are_one_unaugmented_view_per_withheld_image(scene, encoder):
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     _, held = holdout_split(frames, 2)
     buf = fill_heldout(held, encoder, OPTS, SHORT_SIDE, seed=SEED)
     assert buf.image_names == [f.name for f in held] and not buf.has_keypoints
@@ -190,7 +190,7 @@ def test_heldout_cells_are_one_unaugmented_view_per_withheld_image(scene, encode
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_buffer_features_at_a_precision_repeat_and_bf16_stays_close(scene, encoder, precision):
-    frames = read_scene_h5(scene).split("train")[:1]
+    frames = read_scene_h5(scene / "scene.h5").split("train")[:1]
     opts = BufferOptions(size=150, samples_per_image=150, precision=precision)
     a = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
     b = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
@@ -231,7 +231,7 @@ def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, 
     from usvc.buffer.build import check_buffer_encoder, read_buffer_attrs
     from usvc.model.encoder import encoder_fingerprint
 
-    frames = read_scene_h5(scene).split("train")
+    frames = read_scene_h5(scene / "scene.h5").split("train")
     path = tmp_path / "b.h5"
     write_buffer(path, fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED), short_side=240, encoder_file="a.pt",
                  encoder_fingerprint=encoder_fingerprint(encoder))

@@ -17,10 +17,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_refinement import CAM, KEYPOINTS, R_TRUE, T_TRUE, backproject, errors, make_map, photo, synthetic_query  # noqa: F401
 
+from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
 from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
-from usvc.landmarks.landmarks_file import LANDMARKS_FILE, landmarks_disagree, read_landmarks, write_landmarks
+from usvc.landmarks.landmarks_file import landmarks_disagree, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import relocalizer as relocalizer_module
 from usvc.relocalize.feature_refinement import (
@@ -140,8 +141,8 @@ def test_build_landmarks_keeps_points_and_descriptors(how: str, tmp_path: Path):
     assert np.array_equal(built.xyz, landmarks.xyz)  # the SfM points bit for bit
     assert np.abs(built.descriptor.astype(int) - landmarks.descriptor.astype(int)).max() <= 1
     assert np.all(built.view_angle_deg < 10) and np.allclose(np.linalg.norm(built.view_dir, axis=1), 1, atol=1e-5)
-    write_landmarks(tmp_path / LANDMARKS_FILE, built)
-    back = read_landmarks(tmp_path / LANDMARKS_FILE)
+    write_landmarks(tmp_path / LANDMARKS_H5, built)
+    back = read_landmarks(tmp_path / LANDMARKS_H5)
     assert back.scene == "synthetic" and back.image_short_side == 120
     assert np.array_equal(back.xyz, built.xyz) and np.array_equal(back.descriptor, built.descriptor)
     few = build_landmarks(tracks_of(landmarks), "synthetic", 120, LandmarksOptions(max_landmarks=50))
@@ -157,7 +158,7 @@ def test_landmarks_of_another_scene_are_refused(tmp_path: Path):
     assert "another SfM model" in landmarks_disagree(landmarks, "synthetic", landmarks.xyz[:10] + 1e-3)
     # a map whose keypoints are not among the landmarks beside it: refused, one line, naming both
     path = make_map(tmp_path / "map.pt", KEYPOINTS, {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     with pytest.raises(UsvcError, match="are not the landmarks of map") as info:
         Relocalizer(path, tmp_path / "encoder.pt")
     assert "\n" not in str(info.value) and "map.pt" in str(info.value)
@@ -169,10 +170,10 @@ def test_relocalizer_refines_by_features_and_reports_the_path(tmp_path: Path, sy
     (tmp_path / "landmarks").mkdir()
     path = make_map(tmp_path / "map" / "map.pt", landmarks.xyz[:10].astype(np.float32),
                     {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / "landmarks" / LANDMARKS_FILE, landmarks)  # the pipeline's layout
+    write_landmarks(tmp_path / "landmarks" / LANDMARKS_H5, landmarks)  # the pipeline's layout
     monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
     reloc = Relocalizer(path, tmp_path / "map" / "encoder.pt")
-    assert reloc.landmarks_path == tmp_path / "landmarks" / LANDMARKS_FILE
+    assert reloc.landmarks_path == tmp_path / "landmarks" / LANDMARKS_H5
     est = reloc.localize(photo(), CAM)
     assert est.success and est.refine_path == "guided" and est.feature_inliers >= 0.8 * N_POINTS
     assert errors(est.R, est.t)[0] < 0.1 < errors(est.initial_R, est.initial_t)[0]
@@ -189,7 +190,7 @@ def test_features_from_another_place_fall_back_to_the_dense_answer(tmp_path: Pat
     _, other = scene(1)
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: other)
     est = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt").localize(photo(), CAM)
     assert est.refine_path == "dense" and est.feature_inliers == 0
@@ -237,7 +238,7 @@ def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthet
     landmarks, feats = scene()
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
     reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
@@ -256,7 +257,7 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
     landmarks, feats = scene()
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_FILE, landmarks)
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
     monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
     est = reloc.localize(photo(), None)

@@ -13,7 +13,7 @@ from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.sfm.tracks import read_tracks
 
 READERS = [
-    (lambda d: read_scene_h5(d), "scene.h5", "prepared scene"),
+    (lambda d: read_scene_h5(d / "scene.h5"), "scene.h5", "prepared scene"),
     (lambda d: read_tracks(d / "tracks.h5"), "tracks.h5", "SfM tracks"),
     (lambda d: read_buffer(d / "buffer.h5"), "buffer.h5", "training buffer"),
     (lambda d: read_buffer_attrs(d / "buffer.h5"), "buffer.h5", "training buffer"),

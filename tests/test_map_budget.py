@@ -50,7 +50,7 @@ def test_bad_budget_options_are_named(opts, message):
 
 
 def test_buffer_cells_follow_the_photo_count(scene, encoder):  # noqa: F811
-    frames = read_scene_h5(scene).split("train")  # 3 mapping images
+    frames = read_scene_h5(scene / "scene.h5").split("train")  # 3 mapping images
     opts = BufferOptions(size=0, cells_per_image=200, min_size=300, max_size=500, samples_per_image=150)
     assert len(fill_buffer(frames[:1], encoder, opts, SHORT_SIDE, seed=SEED).features) == 300  # the floor
     assert len(fill_buffer(frames[:2], encoder, opts, SHORT_SIDE, seed=SEED).features) == 400

@@ -91,7 +91,7 @@ def test_alignment_undoes_a_similarity_and_measures_what_is_left() -> None:
 
 
 def _check_posed(prepared: Path, given: list[Frame], stats: dict, rot_deg: float, centre_frac: float) -> None:
-    posed = read_scene_h5(prepared)
+    posed = read_scene_h5(prepared / "scene.h5")
     assert posed.pose_source == "sfm" and stats["pose_source"] == "sfm"
     assert {f.camera.model for f in posed.frames} == {"PINHOLE"}
     mapping = {f.name for f in posed.frames if f.split == "train"}
@@ -113,7 +113,7 @@ def test_unposed_miniature_photos_get_the_true_poses_up_to_a_similarity(tmp_path
     truth = tmp_path / "truth"
     truth.mkdir()
     prepare_scene(load_scene("ace", raw, "mini", "given"), truth, working_width=0)
-    given = read_scene_h5(truth).frames
+    given = read_scene_h5(truth / "scene.h5").frames
     photos = tmp_path / "photos"
     photos.mkdir()
     for f in given:  # the same photos, flat, with nothing but pixels
@@ -143,7 +143,7 @@ def test_unposed_office_photos_match_the_given_poses(tmp_path: Path) -> None:
     stats = prepare_scene(load_scene("images", photos, "office_photos", "every_nth", 8), out, 640, sfm=OPTS, threads=-1)
     assert stats["frames"] == 64 and not stats["unposed"]
     assert stats["sfm_cameras"][0]["model"] == "SIMPLE_RADIAL"
-    _check_posed(out, read_scene_h5(given_dir).frames, stats, rot_deg=1.0, centre_frac=0.02)
+    _check_posed(out, read_scene_h5(given_dir / "scene.h5").frames, stats, rot_deg=1.0, centre_frac=0.02)
 
 
 def test_a_corrupt_photo_in_an_images_scene_is_named_and_nothing_is_written(tmp_path: Path) -> None:

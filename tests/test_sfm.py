@@ -63,7 +63,7 @@ def test_office_imported_poses_reproject_under_one_pixel(tmp_path):
     prepared = tmp_path / "prepared"
     prepared.mkdir()
     prepare_scene(scene, prepared, working_width=640)
-    loaded = read_scene_h5(prepared)
+    loaded = read_scene_h5(prepared / "scene.h5")
     assert loaded.frames[0].camera.width == 640
     work = tmp_path / "work"
     work.mkdir()
@@ -108,7 +108,7 @@ from usvc.sfm.reconstruction import SfmOptions, reconstruct
 from usvc.sfm.tracks import from_reconstruction, write_tracks
 prepared, work = Path(sys.argv[1]), Path(sys.argv[2])
 opts = SfmOptions(**eval(sys.argv[3]))
-rec, _ = reconstruct(read_scene_h5(prepared).split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True,
+rec, _ = reconstruct(read_scene_h5(prepared / "scene.h5").split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True,
                      threads=-1)
 write_tracks(work / "tracks.h5", from_reconstruction(rec, work / "database.db"))
 """
@@ -141,7 +141,7 @@ def test_same_config_gives_identical_tracks(small_mini, tmp_path):
 @pytest.mark.slow
 def test_incremental_mapping_on_the_miniature_scene_recovers_the_poses(small_mini, tmp_path):
     """Full mapping (no poses used) registers the images; aligned to the truth, centres agree to cm."""
-    scene = read_scene_h5(small_mini)
+    scene = read_scene_h5(small_mini / "scene.h5")
     frames = scene.split("train")
     work = tmp_path / "work"
     work.mkdir()
@@ -162,7 +162,7 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
     from usvc.analysis.baseline_sift import sift_pnp_baseline
     from usvc.core.pose_errors import rotation_error_deg, translation_error
 
-    scene = read_scene_h5(small_mini)
+    scene = read_scene_h5(small_mini / "scene.h5")
     truth = {f.name: f for f in scene.split("test")}
     # the queries' poses are scrambled: a baseline that read them would be far off
     rng = np.random.default_rng(0)
@@ -195,7 +195,7 @@ def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
     from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
     from usvc.sfm.reconstruction import extract, match
 
-    frames = read_scene_h5(small_mini).split("train")
+    frames = read_scene_h5(small_mini / "scene.h5").split("train")
     db = tmp_path / "database.db"
     extract(frames, small_mini / IMAGE_DIR, db, OPTS, threads=-1)
     match(frames, db, tmp_path, OPTS, has_poses=True)

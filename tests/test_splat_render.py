@@ -251,8 +251,8 @@ def test_novel_views_round_trip_through_the_render_artifact(tmp_path):
     for v in views:
         uv, z = project_np(kp.xyz[v.keypoint_ids], v.R, v.t, v.K)
         assert np.allclose(uv, v.keypoint_uv, atol=1e-3) and (z > 0).all()
-    write_rendered_views(tmp_path / "render", views)
-    rendered, obs = read_rendered_views(tmp_path / "render")
+    write_rendered_views(tmp_path / "render" / "render.h5", views)
+    rendered, obs = read_rendered_views(tmp_path / "render" / "render.h5")
     assert [f.name for f in rendered] == [f"render/{i:04d}.png" for i in range(4)]
     assert np.allclose(rendered[2].R, views[2].R) and np.allclose(rendered[2].camera.K, views[2].K)
     assert np.array_equal(obs["render/0001.png"][0], views[1].keypoint_ids)
@@ -269,7 +269,7 @@ def test_clear_errors_for_missing_inputs(tmp_path):
     from usvc.render.views_file import read_rendered_views
 
     with pytest.raises(UsvcError, match="run the render stage"):
-        read_rendered_views(tmp_path / "nothing")
+        read_rendered_views(tmp_path / "nothing" / "render.h5")
     cam = Camera("OPENCV", 48, 32, (40.0, 40.0, 24.0, 16.0, 0.1, 0, 0, 0))
     with pytest.raises(UsvcError, match="undistorted pinhole"):
         load_fit_images([Frame("a.png", tmp_path / "a.png", cam, "train", np.eye(3), np.zeros(3))], 0)

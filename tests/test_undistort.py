@@ -139,7 +139,7 @@ def test_prepare_undistorts_every_format(tmp_path: Path, fmt: str, model: str) -
     prepared.mkdir()
     stats = prepare_scene(scene, prepared, working_width=0)
     assert stats["undistorted"] == 6 and stats["source_camera_models"] == [model]
-    back = read_scene_h5(prepared)
+    back = read_scene_h5(prepared / "scene.h5")
     assert {f.camera.model for f in back.frames} == {"PINHOLE"}
     with h5py.File(prepared / "scene.h5") as h5:  # the imported cameras, kept beside the pinhole ones
         assert list(h5["source_camera_model"].asstr()[()]) == [model] * 6

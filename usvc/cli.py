@@ -52,6 +52,7 @@ CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_
 
 def _map(args: argparse.Namespace) -> int:
     """Add the scene to the checkout around the working directory, then run its pipeline."""
+    from usvc.pipeline.paths import ScenePaths
     from usvc.prepare.new_scene import NewSceneOptions, add_scene, find_checkout, repro
 
     checkout = find_checkout(Path.cwd())
@@ -68,8 +69,8 @@ def _map(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 130
     if code == 0:
-        print(f"map: {checkout / 'data' / args.name / 'map' / 'map.pt'}; "
-              f"metrics: {checkout / 'results' / args.name / 'metrics.json'}", file=sys.stderr)
+        paths = ScenePaths(checkout / "data", checkout / "results", args.name)
+        print(f"map: {paths.map_file}; metrics: {paths.metrics('metrics')}", file=sys.stderr)
     return code
 
 

@@ -1,4 +1,4 @@
-"""The prepared scene on disk: images at working resolution plus one `scene.h5` of metadata.
+"""The prepared scene on disk: images at working resolution (IMAGE_DIR) beside one scene.h5 of metadata.
 
 Every stage after `prepare` reads this, never the source format, so importers run once.
 """
@@ -14,8 +14,7 @@ from usvc.core.errors import SceneError
 from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.scene import CAMERA_MODELS, Camera, Frame, Scene
 
-SCENE_FILE = "scene.h5"
-IMAGE_DIR = "images"
+IMAGE_DIR = "images"  # beside scene.h5
 _MAX_PARAMS = max(CAMERA_MODELS.values())
 
 SCENE_FORMAT, SCENE_VERSION = "usvc-scene", 1
@@ -99,10 +98,12 @@ def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | N
                     grp.create_dataset(str(i), data=d.astype(np.float32), compression="gzip")
 
 
-def read_scene_h5(prepared_dir: Path) -> Scene:
-    """Load a prepared scene; image paths point into the prepared image folder."""
-    prepared_dir = Path(prepared_dir)
-    path = prepared_dir / SCENE_FILE
+def read_scene_h5(path: Path) -> Scene:
+    """Load a prepared scene from its scene.h5; image paths point into IMAGE_DIR beside it."""
+    path = Path(path)
+    prepared_dir = path.parent
+    if path.is_dir():
+        raise SceneError(f"{path} is a folder: read_scene_h5 takes the scene.h5 file in it")
     if not path.is_file():
         raise SceneError(f"prepared scene not found: {path} (run the prepare stage first)")
     with read_h5(path, "prepared scene") as h5:
@@ -123,9 +124,9 @@ def read_scene_h5(prepared_dir: Path) -> Scene:
                  pose_source=pose_source)
 
 
-def read_depth(prepared_dir: Path, index: int) -> np.ndarray | None:
-    """Depth of frame `index` in scene units at working resolution, if the scene has depth."""
-    with read_h5(Path(prepared_dir) / SCENE_FILE, "prepared scene") as h5:
+def read_depth(path: Path, index: int) -> np.ndarray | None:
+    """Depth of frame `index` of scene.h5 `path` in scene units at working resolution, if the scene has depth."""
+    with read_h5(path, "prepared scene") as h5:
         if "depth" not in h5 or str(index) not in h5["depth"]:
             return None
         return h5["depth"][str(index)][()]

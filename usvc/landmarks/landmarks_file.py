@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
+from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.landmarks.landmark_table import Landmarks
 
 LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 1
-LANDMARKS_FILE = "landmarks.h5"
 
 LANDMARKS_SCHEMA: dict[str, Field] = {
     "xyz": Field("scene units", "position of the landmark: the triangulated SfM point (as in sfm/tracks.h5)", "world"),
@@ -61,7 +61,7 @@ def read_landmarks(path: Path | str) -> Landmarks:
 
 def landmarks_beside(map_path: Path) -> Path | None:
     """The landmarks file that goes with a map file, if there is one."""
-    for candidate in (map_path.parent / LANDMARKS_FILE, map_path.parent.parent / "landmarks" / LANDMARKS_FILE):
+    for candidate in (map_path.parent / LANDMARKS_H5, map_path.parent.parent / "landmarks" / LANDMARKS_H5):
         if candidate.is_file():
             return candidate
     return None

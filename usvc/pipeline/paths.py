@@ -10,22 +10,28 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-# File names inside the artifact folders.
-SCENE_H5 = "scene.h5"  # prepared/: images' cameras, poses and split
-TRACKS_H5 = "tracks.h5"  # sfm/: the SfM model (points, observations, cameras, median depth)
-POINTS_PLY = "points.ply"  # sfm/: the SfM points, for viewers
-KEYPOINTS_H5 = "keypoints.h5"  # keypoints/: the kept tracks
-KEYPOINTS_PLY = "keypoints.ply"  # keypoints/: the kept points, for viewers
-LANDMARKS_H5 = "landmarks.h5"  # landmarks/: kept points with their SIFT descriptors
-SPLAT_PLY = "splat.ply"  # gaussians/: the Gaussian splatting model
-SPLAT_CHECK_PNG = "heldout_render_vs_image.png"  # gaussians/: a held-out render beside its photo
-RENDER_H5 = "render.h5"  # render/: the rendered views' poses and keypoint tuples
-BUFFER_H5 = "buffer.h5"  # buffer/: encoder features and their targets
-HOLDOUT_H5 = "holdout.h5"  # buffer/: cells of the withheld images (buffer.holdout_every > 0)
-MAP_PT = "map.pt"  # map/: the scene's map (encoder + head + metadata)
-POSES_TXT = "poses.txt"  # relocalize/: one estimated pose per query
-QUERIES_H5 = "queries.h5"  # relocalize/: per-query inliers, timings and refinement records
-METRICS_JSON = "metrics.json"  # a --multirun job's record, in its own folder
+# File names inside the artifact folders: spelled once, in usvc.core.artifact_names.
+from usvc.core.artifact_names import (
+    BUFFER_H5,
+    HOLDOUT_H5,
+    KEYPOINTS_H5,
+    KEYPOINTS_PLY,
+    LANDMARKS_H5,
+    MAP_PT,
+    METRICS_JSON,
+    POINTS_PLY,
+    POSES_TXT,
+    QUERIES_H5,
+    RENDER_H5,
+    SCENE_H5,
+    SPLAT_CHECK_PNG,
+    SPLAT_PLY,
+    TRACKS_H5,
+)
+
+__all__ = ["BUFFER_H5", "HOLDOUT_H5", "KEYPOINTS_H5", "KEYPOINTS_PLY", "LANDMARKS_H5", "MAP_PT", "METRICS_JSON",
+           "POINTS_PLY", "POSES_TXT", "QUERIES_H5", "RENDER_H5", "SCENE_H5", "SPLAT_CHECK_PNG", "SPLAT_PLY",
+           "TRACKS_H5", "ScenePaths"]
 
 
 @dataclass(frozen=True)

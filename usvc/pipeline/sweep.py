@@ -12,9 +12,9 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from usvc.pipeline.metrics_file import read_metrics
+from usvc.pipeline.paths import METRICS_JSON
 
 log = logging.getLogger("usvc")
-METRICS_FILE = "metrics.json"
 
 
 # Columns after the overrides, in this order when present; every other value follows.
@@ -65,7 +65,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 def sweep_table(sweep_dir: Path) -> str:
     """Scalar metrics of every job under `sweep_dir`, as a fixed-width table."""
     rows: list[dict[str, Any]] = []
-    for metrics in sorted(Path(sweep_dir).glob(f"*/{METRICS_FILE}"), key=lambda p: int(p.parent.name.split("_")[0])):
+    for metrics in sorted(Path(sweep_dir).glob(f"*/{METRICS_JSON}"), key=lambda p: int(p.parent.name.split("_")[0])):
         overrides_file = metrics.parent / ".hydra" / "overrides.yaml"
         listed = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else None
         overrides = " ".join(map(str, listed or []))

@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from usvc.buffer.build import holdout_split
+from usvc.core.artifact_names import SCENE_H5, TRACKS_H5
 from usvc.core.errors import UsvcError
 from usvc.core.images import read_image_bgr
 from usvc.core.scene_file import read_scene_h5
 from usvc.model.preprocess import luma01
 from usvc.pretrain.pretrain_data import CorpusScene
-from usvc.sfm.median_depth import median_scene_depth
-from usvc.sfm.tracks import read_tracks
+from usvc.sfm.tracks import read_median_depth, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -38,17 +38,17 @@ PARTNERS = 8  # a photo is paired with one of the (up to) 8 photos sharing the m
 def real_corpus_scene(scene_dir: Path, holdout_every: int = 0) -> CorpusScene:
     """Mapping images of a prepared scene (`<scene_dir>/prepared`, `<scene_dir>/sfm/tracks.h5`)."""
     scene_dir = Path(scene_dir)
-    tracks_path = scene_dir / "sfm" / "tracks.h5"
+    tracks_path = scene_dir / "sfm" / TRACKS_H5
     if not tracks_path.is_file():
         raise UsvcError(f"{tracks_path}: no SfM tracks; run the scene's sfm stage first")
-    scene = read_scene_h5(scene_dir / "prepared")
+    scene = read_scene_h5(scene_dir / "prepared" / SCENE_H5)
     tracks = read_tracks(tracks_path)
     mapping, _ = holdout_split(scene.split("train"), holdout_every)
     index = {name: k for k, name in enumerate(tracks.image_names)}
     frames = [f for f in mapping if f.name in index]
     if len(frames) < 2:
         raise UsvcError(f"{scene_dir}: fewer than two mapping images with SfM observations")
-    scale = REFERENCE_DEPTH / median_scene_depth(tracks)
+    scale = REFERENCE_DEPTH / read_median_depth(tracks_path)
     point_of_obs = tracks.point_of_obs()
     sees = np.zeros((len(frames), len(tracks.xyz)), dtype=np.float32)  # frame x point incidence
     grays, labels = [], []

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from usvc.core.artifact_names import POSES_TXT
 from usvc.core.atomic import atomic_file
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
@@ -24,7 +25,7 @@ from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Camera
 
 FORMATS = ("jsonl", "poses", "colmap", "nerfstudio")
-JSONL_FILE, POSES_FILE, TRANSFORMS_FILE = "queries.jsonl", "poses.txt", "transforms.json"
+JSONL_FILE, TRANSFORMS_FILE = "queries.jsonl", "transforms.json"
 COLMAP_FILES = ("cameras.txt", "images.txt", "points3D.txt")
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])  # flips the camera's y and z axes (either way)
 
@@ -169,5 +170,5 @@ def export(out_dir: Path, formats: Sequence[str], records: Sequence[Mapping[str,
         texts.update({out_dir / name: text for name, text in colmap_texts(items).items()})
     if "nerfstudio" in formats:
         texts[out_dir / TRANSFORMS_FILE] = transforms_json_text(items, out_dir)
-    written = [write_poses(out_dir / POSES_FILE, items)] if "poses" in formats else []
+    written = [write_poses(out_dir / POSES_TXT, items)] if "poses" in formats else []
     return written + [_write_text(path, text) for path, text in texts.items()]

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from usvc.core.artifact_names import POSES_TXT, QUERIES_H5
 from usvc.core.errors import UsvcError
 from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Frame
@@ -32,10 +33,10 @@ def relocalize_frames(relocalizer: Relocalizer, frames: list[Frame]) -> list[Pos
 def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate]) -> dict[str, Any]:
     """poses.txt (successful queries only), queries.h5 and queries.json; returns summary figures."""
     ok = [i for i, r in enumerate(results) if r.success]
-    write_poses_txt(out_dir / "poses.txt", [frames[i].name for i in ok],
+    write_poses_txt(out_dir / POSES_TXT, [frames[i].name for i in ok],
                     np.array([results[i].R for i in ok]).reshape(-1, 3, 3),
                     np.array([results[i].t for i in ok]).reshape(-1, 3))
-    write_queries(out_dir / "queries.h5", [f.name for f in frames], [r.success for r in results],
+    write_queries(out_dir / QUERIES_H5, [f.name for f in frames], [r.success for r in results],
                   [r.inliers for r in results], [r.cells for r in results],
                   [r.refine_iterations for r in results], [r.refine_kept for r in results],
                   [r.initial_R for r in results], [r.initial_t for r in results])

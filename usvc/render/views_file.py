@@ -11,6 +11,7 @@ import numpy as np
 from usvc.core.errors import UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.scene import Camera, Frame
+from usvc.core.scene_file import IMAGE_DIR
 from usvc.render.novel_views import NovelView
 
 RENDER_FORMAT, RENDER_VERSION = "usvc-render", 1
@@ -35,10 +36,13 @@ RENDER_SCHEMA: dict[str, Field] = {
 }
 
 
-def write_rendered_views(out_dir: Path, views: list[NovelView]) -> None:
-    (out_dir / "images").mkdir(parents=True, exist_ok=True)
+def write_rendered_views(path: Path, views: list[NovelView]) -> None:
+    """render.h5 at `path`, and the views' images in IMAGE_DIR beside it."""
+    path = Path(path)
+    images = path.parent / IMAGE_DIR
+    images.mkdir(parents=True, exist_ok=True)
     offsets = np.cumsum([0] + [len(v.keypoint_ids) for v in views])
-    with write_h5(out_dir / "render.h5", RENDER_SCHEMA, RENDER_FORMAT, RENDER_VERSION) as h5:
+    with write_h5(path, RENDER_SCHEMA, RENDER_FORMAT, RENDER_VERSION) as h5:
         h5["R"] = np.stack([v.R for v in views])
         h5["t"] = np.stack([v.t for v in views])
         h5["K"] = np.stack([v.K for v in views])
@@ -50,14 +54,15 @@ def write_rendered_views(out_dir: Path, views: list[NovelView]) -> None:
         h5["obs/keypoint"] = np.concatenate([v.keypoint_ids for v in views]).astype(np.int32)
         h5["obs/uv"] = np.concatenate([v.keypoint_uv for v in views]).astype(np.float32)
     for i, v in enumerate(views):
-        if not cv2.imwrite(str(out_dir / "images" / f"{i:04d}.png"), v.rgb[..., ::-1]):
-            raise UsvcError(f"could not write {out_dir / 'images' / f'{i:04d}.png'}")
+        if not cv2.imwrite(str(images / f"{i:04d}.png"), v.rgb[..., ::-1]):
+            raise UsvcError(f"could not write {images / f'{i:04d}.png'}")
 
 
-def read_rendered_views(render_dir: Path) -> tuple[list[Frame], dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Rendered views as mapping frames (names 'render/NNNN.png'), and their keypoint observations
-    keyed by those names, in the form `SceneKeypoints.by_image` takes."""
-    path = Path(render_dir) / "render.h5"
+def read_rendered_views(path: Path) -> tuple[list[Frame], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """The views of render.h5 `path` as mapping frames (names 'render/NNNN.png', images in IMAGE_DIR
+    beside it), and their keypoint observations keyed by those names, in the form
+    `SceneKeypoints.by_image` takes."""
+    path = Path(path)
     if not path.is_file():
         raise UsvcError(f"rendered views not found: {path} (run the render stage, or use a method without "
                         "rendered views)")
@@ -66,7 +71,7 @@ def read_rendered_views(render_dir: Path) -> tuple[list[Frame], dict[str, tuple[
         R, t, K, size = h5["R"][()], h5["t"][()], h5["K"][()], h5["size"][()]
         off, kp, uv = h5["obs/offset"][()], h5["obs/keypoint"][()], h5["obs/uv"][()].astype(np.float64)
     for i in range(len(R)):
-        image = Path(render_dir) / "images" / f"{i:04d}.png"
+        image = path.parent / IMAGE_DIR / f"{i:04d}.png"
         if not image.is_file():
             raise UsvcError(f"rendered image missing: {image}")
         name = f"render/{i:04d}.png"

@@ -2,6 +2,13 @@
 
 Layout is CSR: observations of point k are rows offset[k]:offset[k+1] of the obs/* arrays.
 uv are in COLMAP pixel coordinates (top-left pixel centre at (0.5, 0.5)).
+
+The median scene depth is the scale that makes translation errors scale-free: scenes without a
+metric scale (COLMAP units) cannot be scored in centimetres, so their translation accuracy is
+judged relative to how far the cameras typically look (`acc_5deg_3pct`: error below 3 % of this
+depth). It is measured where the map was built (every observation of every SfM point, in the
+camera that observed it), computed once when tracks.h5 is written and stored as its `median_depth`
+attribute (`read_median_depth`).
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import h5py
 import numpy as np
 import pycolmap
 
-from usvc.core.errors import SfmError
+from usvc.core.errors import SfmError, UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
 
 
@@ -39,6 +46,35 @@ class Tracks:
 
     def point_of_obs(self) -> np.ndarray:
         return np.repeat(np.arange(len(self.xyz)), self.track_length)
+
+
+def observation_depths(tracks: Tracks) -> np.ndarray:
+    """z-depth (R_img @ X + t)[2] of each observation's point in its observing camera, (T,)."""
+    point = tracks.point_of_obs()
+    image = np.asarray(tracks.obs_image, dtype=np.int64)
+    if len(point) != len(image):
+        raise UsvcError(f"tracks: {len(image)} observations but track offsets count {len(point)}")
+    # Only the third row of each rotation matters; gathering (T,3) rows instead of (T,3,3)
+    # matrices keeps memory at a third for scenes with millions of observations.
+    r_z = np.asarray(tracks.R, dtype=np.float64)[image, 2, :]
+    t_z = np.asarray(tracks.t, dtype=np.float64)[image, 2]
+    return np.einsum("ij,ij->i", r_z, np.asarray(tracks.xyz, dtype=np.float64)[point]) + t_z
+
+
+def median_scene_depth(tracks: Tracks) -> float:
+    """Median depth over observations in front of their camera, in scene units.
+
+    Observations behind the camera (z <= 0) are SfM outliers and are left out rather than
+    allowed to pull the median towards zero.
+    """
+    z = observation_depths(tracks)
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        raise UsvcError(
+            f"tracks: no observation has a positive depth ({len(tracks.obs_image)} observations of "
+            f"{len(tracks.xyz)} points); cannot compute the median scene depth"
+        )
+    return float(np.median(z))
 
 
 def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
@@ -92,6 +128,7 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
 
 
 TRACKS_FORMAT, TRACKS_VERSION = "usvc-tracks", 1
+MEDIAN_DEPTH_ATTR = "median_depth"  # file attribute: median_scene_depth of the tracks
 PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
 
 # The `images` group of tracks.h5 and keypoints.h5: the registered mapping images.
@@ -131,8 +168,16 @@ def write_images_group(h5: h5py.File, tracks: Tracks) -> None:
 
 
 def write_tracks(path: Path, tracks: Tracks) -> None:
-    """tracks.h5: every dataset carries units/description/frame attributes (TRACKS_SCHEMA)."""
+    """tracks.h5: every dataset carries units/description/frame attributes (TRACKS_SCHEMA); the file
+    attribute `median_depth` is `median_scene_depth(tracks)` (absent when no observation has a
+    positive depth: `read_median_depth` then raises as the computation does)."""
+    try:
+        median_depth = median_scene_depth(tracks)
+    except UsvcError:
+        median_depth = None
     with write_h5(path, TRACKS_SCHEMA, TRACKS_FORMAT, TRACKS_VERSION) as h5:
+        if median_depth is not None:
+            h5.attrs[MEDIAN_DEPTH_ATTR] = np.float64(median_depth)
         write_images_group(h5, tracks)
         pts = h5.create_group("points")
         pts["id"], pts["xyz"], pts["rgb"], pts["error"] = tracks.point_id, tracks.xyz, tracks.rgb, tracks.error
@@ -155,6 +200,18 @@ def read_tracks(path: Path) -> Tracks:
             obs_image=h5["obs/image"][()], obs_uv=h5["obs/uv"][()],
             obs_descriptor=h5["obs/descriptor"][()], obs_error=h5["obs/error"][()],
         )
+
+
+def read_median_depth(path: Path) -> float:
+    """The median scene depth of tracks.h5 `path` (scene units): its `median_depth` attribute, or
+    for a file written before the attribute existed, `median_scene_depth` of its tracks (the same
+    float)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SfmError(f"tracks file not found: {path} (run the sfm stage first)")
+    with read_h5(path, "SfM tracks") as h5:
+        stored = h5.attrs.get(MEDIAN_DEPTH_ATTR)
+    return float(stored) if stored is not None else median_scene_depth(read_tracks(path))
 
 
 def sfm_stats(tracks: Tracks) -> dict:
