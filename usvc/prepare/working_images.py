@@ -18,7 +18,6 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.core.artifact_names import SCENE_H5
-from usvc.core.artifact_names import SCENE_H5
 from usvc.core.errors import SceneError
 from usvc.core.images import read_image_bgr
 from usvc.core.scene import Frame, Scene
