@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 from _report import write_report  # noqa: E402
 
 from usvc.analysis.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
-from usvc.buffer.build import read_buffer_attrs, read_buffer_image_names  # noqa: E402
+from usvc.buffer.buffer_file import read_buffer_attrs, read_buffer_image_names# noqa: E402
 from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.model.preprocess import luma01  # noqa: E402

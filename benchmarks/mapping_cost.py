@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _report import scene_of, write_report  # noqa: E402
 
-from usvc.buffer.build import read_buffer  # noqa: E402
+from usvc.buffer.buffer_file import read_buffer# noqa: E402
 from usvc.pipeline.config import register_configs  # noqa: E402
 from usvc.train.trainer import TrainOptions, train_head  # noqa: E402
 

@@ -37,7 +37,7 @@ import torch  # noqa: E402
 
 from _report import write_report  # noqa: E402
 
-from usvc.buffer.build import read_buffer  # noqa: E402
+from usvc.buffer.buffer_file import read_buffer# noqa: E402
 from usvc.core.precision import cpu_has_native_bf16, resolve_precision  # noqa: E402
 from usvc.model.head import Head  # noqa: E402
 from usvc.pipeline import threads as thread_policy  # noqa: E402

@@ -14,7 +14,7 @@ from conftest import REPO
 
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.landmarks.landmarks_file import write_landmarks
-from usvc.buffer.build import TrainingBuffer, write_buffer
+from usvc.buffer.buffer_file import TrainingBuffer, write_buffer
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import write_scene_h5
 from usvc.keypoints.keypoints_file import Keypoints, write_keypoints

@@ -7,16 +7,8 @@ import pytest
 import torch
 
 from usvc.buffer.augment import warp_view
-from usvc.buffer.build import (
-    BufferOptions,
-    fill_buffer,
-    fill_heldout,
-    holdout_split,
-    read_buffer,
-    read_buffer_image_names,
-    working_short_side,
-    write_buffer,
-)
+from usvc.buffer.buffer_file import read_buffer, read_buffer_image_names, write_buffer
+from usvc.buffer.build import BufferOptions, fill_buffer, fill_heldout, holdout_split, working_short_side
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera, Frame
 from usvc.core.scene_file import read_scene_h5
@@ -228,7 +220,7 @@ def test_training_refuses_a_buffer_of_another_encoder(scene, encoder, tmp_path, 
     """The buffer records its encoder's fingerprint; a different configured encoder is refused at once."""
     from pathlib import Path
 
-    from usvc.buffer.build import check_buffer_encoder, read_buffer_attrs
+    from usvc.buffer.buffer_file import check_buffer_encoder, read_buffer_attrs
     from usvc.model.encoder import encoder_fingerprint
 
     frames = read_scene_h5(scene / "scene.h5").split("train")

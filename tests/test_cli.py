@@ -28,7 +28,8 @@ from usvc.core.pose_errors import rotation_error_deg
 from usvc.core.poses_file import read_poses_txt
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
-from usvc.model.head import Head, Regressor, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import save_map
 from usvc.prepare.importers import load_scene
 
 REPO = Path(__file__).resolve().parents[1]

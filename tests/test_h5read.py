@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from usvc.buffer.build import read_buffer, read_buffer_attrs
+from usvc.buffer.buffer_file import read_buffer, read_buffer_attrs
 from usvc.core.errors import UsvcError
 from usvc.core.scene_file import read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints

@@ -25,7 +25,8 @@ from usvc.cli import main
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
-from usvc.model.head import Head, Regressor, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import save_map
 from usvc.relocalize.exports import FORMATS
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_input import camera_from_intrinsics

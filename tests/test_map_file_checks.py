@@ -15,7 +15,8 @@ from usvc.cli import main
 from usvc.core.errors import UsvcError
 from usvc.model.encoder import Encoder
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, load_map, read_map_header, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import load_map, read_map_header, save_map
 from usvc.model.map_checks import CHECKSUM_KEY, map_checksum
 from usvc.relocalize.relocalizer import Relocalizer
 

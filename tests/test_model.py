@@ -18,7 +18,8 @@ from usvc.model.encoder import (
     load_encoder_weights,
 )
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, homogeneous_scale, load_map, save_map
+from usvc.model.head import Head, Regressor, homogeneous_scale
+from usvc.model.map_file import load_map, save_map
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "usvc" / "model"
@@ -141,7 +142,7 @@ def test_pickled_code_is_refused(tmp_path: Path) -> None:
 @pytest.mark.parametrize("content", [b"not a torch file at all", bytes(range(256)) * 20, b"PK\x03\x04broken zip"])
 def test_unreadable_files_never_relay_torchs_unsafe_advice(tmp_path: Path, content: bytes) -> None:
     """Torch's own text suggests `weights_only=False`; our one line says what is wrong instead."""
-    from usvc.model.head import read_map_header
+    from usvc.model.map_file import read_map_header
 
     path = tmp_path / "random.pt"
     path.write_bytes(content)

@@ -22,7 +22,8 @@ from usvc.core.pose_errors import rotation_error_deg
 from usvc.core.scene import Camera, Frame
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, map_keypoints, read_map_header, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import map_keypoints, read_map_header, save_map
 from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
 from usvc.relocalize.refinement import (
     RefineResult,

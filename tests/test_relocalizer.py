@@ -22,7 +22,8 @@ from usvc.core.scene import Camera
 from usvc.core.undistort import undistorted_camera
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import save_map
 from usvc.relocalize.options import BACKENDS
 from usvc.relocalize.pose_estimate import PoseEstimate
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.buffer.build import TrainingBuffer
+from usvc.buffer.buffer_file import TrainingBuffer
 from usvc.core.errors import UsvcError
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief

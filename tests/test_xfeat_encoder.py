@@ -9,7 +9,8 @@ import torch
 
 from usvc.model.encoder import feature_size
 from usvc.model.errors import ModelError
-from usvc.model.head import Head, Regressor, load_map, read_map_header, save_map
+from usvc.model.head import Head, Regressor
+from usvc.model.map_file import load_map, read_map_header, save_map
 from usvc.model.xfeat_encoder import (
     FEATURE_DIM,
     load_xfeat_encoder,

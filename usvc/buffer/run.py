@@ -8,7 +8,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from usvc.buffer.build import fill_buffer, fill_heldout, holdout_split, working_short_side, write_buffer
+from usvc.buffer.buffer_file import write_buffer
+from usvc.buffer.build import fill_buffer, fill_heldout, holdout_split, working_short_side
 from usvc.buffer.options import BufferOptions
 from usvc.core.artifact_names import BUFFER_H5, HOLDOUT_H5
 from usvc.core.scene_file import read_depth, read_scene_h5

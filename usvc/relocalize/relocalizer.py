@@ -25,7 +25,8 @@ from usvc.core.undistort import undistort
 from usvc.landmarks.landmark_table import Landmarks, unit_descriptors
 from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
-from usvc.model.head import Regressor, load_map, map_keypoints, read_map_header
+from usvc.model.head import Regressor
+from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import (

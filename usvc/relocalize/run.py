@@ -9,7 +9,7 @@ from pathlib import Path
 
 from usvc.core.errors import UsvcError
 from usvc.core.scene_file import read_scene_h5
-from usvc.model.head import read_map_header
+from usvc.model.map_file import read_map_header
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.relocalize_scene import relocalize_frames, write_results
 from usvc.relocalize.relocalizer import Relocalizer
