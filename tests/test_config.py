@@ -11,20 +11,24 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from usvc.pipeline.config import GROUP_SCHEMAS, ConfigError, register_configs, validate
+from usvc.pipeline.config import ConfigError, group_schemas, register_configs, validate
 
 register_configs()
+GROUP_SCHEMAS = group_schemas()
 
 
 @pytest.mark.parametrize("group", sorted(GROUP_SCHEMAS))
-def test_every_yaml_sets_every_field(group):
-    """The YAML files are what DVC tracks, so no value may silently come from a dataclass default."""
+def test_every_yaml_sets_only_fields_of_its_schema(group):
+    """default.yaml (generated from the dataclass) sets every field; another option of the group
+    sets what differs from it, and nothing the schema does not have."""
     names = {f.name for f in fields(GROUP_SCHEMAS[group])}
     files = sorted((REPO / "conf" / group).glob("*.yaml"))
     assert files
     for path in files:
         keys = set(yaml.safe_load(path.read_text())) - {"defaults"}
-        assert keys == names, f"{path}: missing {names - keys}, unknown {keys - names}"
+        assert keys <= names, f"{path}: unknown {keys - names}"
+        if path.name == "default.yaml":
+            assert keys == names, f"{path}: missing {names - keys}"
 
 
 def _compose(overrides):
@@ -65,24 +69,13 @@ def test_value_outside_choices_names_the_key():
         validate(_compose(["keypoints.sigma=0"]))
 
 
+@pytest.mark.slow
 def test_stage_reports_bad_config_in_one_line():
     proc = subprocess.run([sys.executable, "-m", "stages.keypoints", "keypoints.weights=foo"],
                           cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 1
     assert "keypoints.weights='foo'" in proc.stderr + proc.stdout
     assert "Traceback" not in proc.stderr + proc.stdout
-
-
-@pytest.mark.parametrize("group", sorted(g for g in GROUP_SCHEMAS if (REPO / "conf" / g / "default.yaml").is_file()))
-def test_options_defaults_are_the_configured_ones(group):
-    """A step's options dataclass is the schema of its config group, and its defaults (what the CLI
-    and the Python API use) are conf/<group>/default.yaml's values: one set of values, no drift."""
-    configured = yaml.safe_load((REPO / "conf" / group / "default.yaml").read_text())
-    configured.pop("defaults")
-    defaults = GROUP_SCHEMAS[group]()
-    assert {f.name for f in fields(defaults)} == set(configured), group
-    for key, value in configured.items():
-        assert getattr(defaults, key) == value, (group, key)
 
 
 @pytest.mark.parametrize("override, message", [

@@ -49,8 +49,8 @@ def test_a_dep_missing_from_dvc_yaml_is_reported(tmp_path):
 
 
 def test_function_local_and_dynamic_imports_count():
-    # sfm imports the thread policy inside a function; prepare loads its format importers by name.
-    assert ROOT / "usvc/pipeline/threads.py" in code_deps.closure("usvc.sfm.reconstruction")
+    # the config imports the thread policy inside a function; prepare loads its format importers by name.
+    assert ROOT / "usvc/pipeline/threads.py" in code_deps.closure("usvc.pipeline.config")
     prepare = code_deps.closure("usvc.prepare.importers")
     assert ROOT / "usvc/prepare/importers/cambridge.py" in prepare
 

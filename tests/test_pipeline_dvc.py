@@ -141,6 +141,24 @@ def test_landmarks_change_reruns_landmarks_relocalize_metrics_only(repo):
     assert _status(repo) == set()
 
 
+def test_an_options_module_edit_marks_only_the_stages_that_read_it(repo):
+    """A stage imports only the options modules of the groups it reads: editing one (here a comment)
+    marks the stages reading that group, not every stage; DVC reruns their downstream stages once
+    their outputs change."""
+    cases = {"usvc/render/options.py": {"render@mini"},
+             "usvc/keypoints/options.py": {"keypoints@mini"},
+             "usvc/model/options.py": {"buffer@mini", "train@mini", "relocalize@mini"}}
+    for module, marked in cases.items():
+        path = repo / module
+        text = path.read_text()
+        path.write_text(text + "# an edited comment\n")
+        try:
+            assert _status(repo) == marked, module
+        finally:
+            path.write_text(text)
+        assert _status(repo) == set()
+
+
 def test_tau_change_reruns_keypoints_onward_only(repo):
     conf = repo / "conf/keypoints/default.yaml"
     before = json.loads((repo / "results/mini/keypoints.json").read_text())
@@ -173,9 +191,9 @@ def test_multirun_writes_own_dirs_and_prints_table(repo):
 
 
 def test_sweep_reruns_only_what_the_override_changes(repo):
-    """stages.sweep on a relocalize value: relocalize + metrics per job, on links to the DVC artifacts."""
+    """tools.sweep on a relocalize value: relocalize + metrics per job, on links to the DVC artifacts."""
     tracked = _digest(repo / "data/mini/relocalize/poses.txt")
-    proc = _run([sys.executable, "-m", "stages.sweep", "--multirun", "relocalize.max_error_px=5,10",
+    proc = _run([sys.executable, "-m", "tools.sweep", "--multirun", "relocalize.max_error_px=5,10",
                  "hydra.sweep.dir=multirun/sweep"], repo)
     jobs = sorted(p for p in (repo / "multirun/sweep").iterdir() if p.is_dir())
     assert [j.name for j in jobs] == ["0_relocalize.max_error_px=5", "1_relocalize.max_error_px=10"]
@@ -203,7 +221,7 @@ def test_sweep_jobs_run_side_by_side_through_submitit(repo):
     """The cluster path with submitit's local executor: the jobs run at once, each its own process,
     and their concurrent `dvc repro` of the upstream stages waits for DVC's lock instead of failing."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
-    _run([sys.executable, "-m", "stages.sweep", "--multirun", "relocalize.max_error_px=6,12",
+    _run([sys.executable, "-m", "tools.sweep", "--multirun", "relocalize.max_error_px=6,12",
           "hydra/launcher=submitit_local", "hydra.launcher.submitit_folder=multirun/submitit",
           "hydra.launcher.timeout_min=20", "hydra.sweep.dir=multirun/sweep_submitit"], repo)
     jobs = sorted(p for p in (repo / "multirun/sweep_submitit").iterdir() if p.is_dir())

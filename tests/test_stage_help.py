@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from usvc.pipeline.config import GROUP_SCHEMAS, Config
+from usvc.pipeline.config import Config, group_schemas
 from usvc.pipeline.stage_help import field_docs, groups_read, stage_help
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("schema", [Config, *GROUP_SCHEMAS.values()], ids=lambda s: s.__name__)
+@pytest.mark.parametrize("schema", [Config, *group_schemas().values()], ids=lambda s: s.__name__)
 def test_every_option_has_a_one_line_meaning(schema):
     docs = field_docs(schema)
     undocumented = [f.name for f in fields(schema) if not docs.get(f.name)]
