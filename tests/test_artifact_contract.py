@@ -90,7 +90,7 @@ def _file_name_literals(path: Path) -> list[tuple[int, str]]:
 
 def test_every_artifact_file_name_is_spelled_once():
     found = []
-    for folder in ("usvc", "benchmarks"):
+    for folder in ("usvc", "stages", "tools", "benchmarks"):
         for path in sorted((ROOT / folder).rglob("*.py")):
             if path == ROOT / "usvc" / "core" / "artifact_names.py":
                 continue

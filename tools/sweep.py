@@ -26,6 +26,7 @@ from usvc.core.errors import UsvcError
 from usvc.pipeline.config import group_schemas
 from usvc.pipeline.metrics_file import read_metrics
 from usvc.pipeline.plan import StagePlan, first_affected_stage, load_plan, split_plan
+from usvc.pipeline.paths import ScenePaths
 from usvc.pipeline.stage import Stage, job_dir
 
 log = logging.getLogger("usvc")
@@ -120,15 +121,15 @@ def run_stage(st: StagePlan, overrides: list[str], job: Path) -> float:
     return seconds
 
 
-def job_metrics(results: Path, rerun: tuple[StagePlan, ...], first: str) -> dict[str, Any]:
-    """Headline numbers of the job: metrics.json's scalars, plus the rerun stages' costs."""
+def job_metrics(paths: ScenePaths, rerun: tuple[StagePlan, ...], first: str) -> dict[str, Any]:
+    """Headline numbers of the job: the metrics stage's scalars, plus the rerun stages' costs."""
     out: dict[str, Any] = {}
-    final = results / "metrics.json"
+    final = paths.metrics("metrics")
     if final.exists():
         out.update({k: v for k, v in read_metrics(final).items()
                     if isinstance(v, (int, float, str)) and k not in NOT_HEADLINE})
     for st in rerun:
-        path = results / f"{st.name}.json"
+        path = paths.metrics(st.name)
         if st.name in STAGE_METRICS and path.exists():
             values = read_metrics(path)
             out.update({k: values[k] for k in STAGE_METRICS[st.name] if k in values})
@@ -158,7 +159,7 @@ def main(cfg, paths, out) -> dict[str, Any]:
     for st in rerun:
         run_stage(st, forwarded, job)
 
-    metrics = job_metrics(job / "results" / scene, rerun, first)
+    metrics = job_metrics(ScenePaths(job / "data", job / "results", scene), rerun, first)
     log.info("sweep %s: %s", job, ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                              for k, v in metrics.items() if k.startswith(("acc_", "median_rot"))))
     return metrics

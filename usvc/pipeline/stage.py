@@ -36,7 +36,7 @@ from usvc.pipeline import threads
 from usvc.pipeline.config import group_options, register_configs, validate
 from usvc.pipeline.logs import quiet_third_party
 from usvc.pipeline.metrics_file import write_json
-from usvc.pipeline.paths import ScenePaths
+from usvc.pipeline.paths import METRICS_JSON, ScenePaths
 
 log = logging.getLogger("usvc")
 
@@ -97,7 +97,7 @@ class Stage:
     def outputs(self, cfg: DictConfig) -> tuple[Path | None, Path]:
         """(artifact folder, record file): the DVC-tracked paths, or this job's own under --multirun."""
         if is_multirun():
-            return (None if self.artifact is None else job_dir() / self.artifact), job_dir() / "metrics.json"
+            return (None if self.artifact is None else job_dir() / self.artifact), job_dir() / METRICS_JSON
         paths = scene_paths(cfg)
         return (None if self.artifact is None else getattr(paths, self.artifact)), paths.metrics(self.record)
 

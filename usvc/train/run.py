@@ -10,10 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from usvc.buffer.build import check_buffer_encoder, read_buffer, read_buffer_attrs
+from usvc.buffer.buffer_file import check_buffer_encoder, read_buffer, read_buffer_attrs
 from usvc.core.artifact_names import MAP_PT
 from usvc.core.errors import UsvcError
-from usvc.model.head import Regressor, save_map
+from usvc.model.head import Regressor
+from usvc.model.map_file import save_map
 from usvc.model.options import ModelOptions
 from usvc.sfm.tracks import read_median_depth, read_tracks
 from usvc.train.options import TrainOptions
