@@ -20,7 +20,7 @@ from usvc.core.scene_file import write_scene_h5
 from usvc.keypoints.keypoints_file import Keypoints, write_keypoints
 from usvc.relocalize.relocalize_scene import write_results
 from usvc.relocalize.pose_estimate import PoseEstimate
-from usvc.render.novel_views import NovelView
+from usvc.render.views_file import NovelView
 from usvc.render.views_file import write_rendered_views
 from usvc.sfm.tracks import Tracks, write_tracks
 

@@ -12,7 +12,6 @@ opacity at the keypoint's projection: in front, not occluded, on a surface the m
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -24,25 +23,12 @@ from usvc.core.geometry import camera_centers
 from usvc.core.pose_errors import rotation_error_deg
 from usvc.core.scene import Frame
 from usvc.keypoints.keypoints_file import SceneKeypoints
+from usvc.render.views_file import NovelView
 from usvc.render.options import RenderOptions
 from usvc.splat.gaussians import Gaussians
 from usvc.splat.rasterize import View, render
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class NovelView:
-    source: str  # the mapping image it was perturbed from
-    R: np.ndarray  # (3, 3) world-to-camera
-    t: np.ndarray  # (3,)
-    K: np.ndarray  # (3, 3)
-    rgb: np.ndarray  # (H, W, 3) uint8
-    depth: np.ndarray  # (H, W) float32, 0 where nothing was rendered
-    keypoint_ids: np.ndarray  # (n,) visible kept keypoints
-    keypoint_uv: np.ndarray  # (n, 2) their projections, COLMAP pixel coordinates
-    angle_deg: float  # rotation from the source pose
-    translation: float  # camera-centre distance from the source pose, scene units
 
 
 def orbit_pose(R: np.ndarray, t: np.ndarray, centre: np.ndarray, rotation: np.ndarray,

@@ -3,6 +3,7 @@ render.h5 with each view's pose, intrinsics, source image, rendered depth and ke
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,23 @@ from usvc.core.errors import UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.core.scene import Camera, Frame
 from usvc.core.scene_file import IMAGE_DIR
-from usvc.render.novel_views import NovelView
+
+
+@dataclass
+class NovelView:
+    """One rendered view, as render.h5 and its PNG store it."""
+
+    source: str  # the mapping image it was perturbed from
+    R: np.ndarray  # (3, 3) world-to-camera
+    t: np.ndarray  # (3,)
+    K: np.ndarray  # (3, 3)
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32, 0 where nothing was rendered
+    keypoint_ids: np.ndarray  # (n,) visible kept keypoints
+    keypoint_uv: np.ndarray  # (n, 2) their projections, COLMAP pixel coordinates
+    angle_deg: float  # rotation from the source pose
+    translation: float  # camera-centre distance from the source pose, scene units
+
 
 RENDER_FORMAT, RENDER_VERSION = "usvc-render", 1
 _PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
