@@ -165,8 +165,6 @@ def export_to_env(n: int) -> None:
         os.environ[EXPORT_MARK] = str(n)
 
 
-
-
 def apply(n: int) -> int:
     """Set torch's and OpenCV's thread pools to `n` (COLMAP takes it through its options)."""
     import cv2
