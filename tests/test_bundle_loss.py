@@ -12,6 +12,9 @@ from usvc.train.group_sampler import GroupSampler
 from usvc.train.reprojection_loss import reprojection_loss
 
 K = torch.tensor([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+# ACE's absolute bounds (metres): the losses have no defaults of their own (the trainer passes
+# TrainOptions' bounds times the median depth), and these tests are written for ACE's values.
+ACE = {"depth_min": 0.1, "depth_max": 1000.0, "max_reproj": 1000.0, "invalid_depth": 10.0}
 
 
 def _views(n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,9 +47,9 @@ def test_zero_at_the_true_point_and_positive_off_it(form):
     uv = torch.stack([_observe(X, R[i], t[i]) for i in range(4)])
     Kb, Kinv = K.expand(4, 3, 3), torch.linalg.inv(K).expand(4, 3, 3)
     args = (torch.tensor([4]), uv, R, t, Kb, Kinv, 10.0)
-    loss, stats = bundle_loss(X.expand(4, 3).clone(), *args, form=form)
+    loss, stats = bundle_loss(X.expand(4, 3).clone(), *args, form=form, **ACE)
     assert float(loss) < 1e-6 and float(stats["valid_fraction"]) == 1.0
-    off, _ = bundle_loss((X + torch.tensor([0.0, 0.0, 0.2])).expand(4, 3).clone(), *args, form=form)
+    off, _ = bundle_loss((X + torch.tensor([0.0, 0.0, 0.2])).expand(4, 3).clone(), *args, form=form, **ACE)
     assert float(off) > 0.1
 
 
@@ -60,13 +63,14 @@ def test_cross_view_pairs_fix_depth_along_the_ray_where_reprojection_cannot(form
     centre0 = -R[0].T @ t[0]
     wrong = centre0 + 1.3 * (X - centre0)  # same pixel in view 0, 30 % too deep
     Kb, Kinv = K.expand(3, 3, 3), torch.linalg.inv(K).expand(3, 3, 3)
-    single, _ = reprojection_loss(wrong[None], uv[:1], R[:1], t[:1], Kb[:1], Kinv[:1], 10.0)
+    single, _ = reprojection_loss(wrong[None], uv[:1], R[:1], t[:1], Kb[:1], Kinv[:1], 10.0, **ACE)
     assert float(single) < 1e-4
     y = wrong.clone().requires_grad_(True)
     opt = torch.optim.Adam([y], lr=0.01)
     for _ in range(300):
         # 50 px: the start of the training threshold schedule (tanh saturates beyond it)
-        loss, _ = bundle_loss(torch.stack([y, y, y]), torch.tensor([3]), uv, R, t, Kb, Kinv, 50.0, form=form)
+        loss, _ = bundle_loss(torch.stack([y, y, y]), torch.tensor([3]), uv, R, t, Kb, Kinv, 50.0, form=form,
+                              **ACE)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -76,7 +80,7 @@ def test_cross_view_pairs_fix_depth_along_the_ray_where_reprojection_cannot(form
 def test_unknown_form_is_rejected():
     with pytest.raises(ValueError, match="form"):
         bundle_loss(torch.zeros(1, 3), torch.tensor([1]), torch.zeros(1, 2), torch.eye(3)[None],
-                    torch.ones(1, 3), K[None], K[None], 1.0, form="l1")
+                    torch.ones(1, 3), K[None], K[None], 1.0, form="l1", **ACE)
 
 
 def test_sampler_takes_whole_groups_capped_and_skips_single_view_groups():
@@ -127,7 +131,7 @@ def test_gradient_is_the_same_bits_every_time(form, monkeypatch):
         grads = []
         for _ in range(20):
             pred.grad = None
-            loss, _ = bl.bundle_loss(pred, *args, form=form)
+            loss, _ = bl.bundle_loss(pred, *args, form=form, **ACE)
             loss.backward()
             grads.append(pred.grad.clone())
         assert all(torch.equal(grads[0], other) for other in grads[1:])

@@ -62,9 +62,10 @@ def test_buffer_cells_follow_the_photo_count(scene, encoder):  # noqa: F811
 def test_training_steps_follow_the_buffer():
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)  # 200 cells
     opts = TrainOptions(iterations=0, passes=1.6, batch_size=64, bundle_weight=0.0)
-    head, summary = train_head(buf, 3.0, opts, head_width=32)
+    head, summary = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
     assert summary["iterations"] == 5 and summary["epochs"] == pytest.approx(1.6)
-    same, _ = train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, bundle_weight=0.0), head_width=32)
+    same, _ = train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, bundle_weight=0.0), head_width=32,
+                         head_blocks=1)
     for a, b in zip(head.state_dict().values(), same.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert np.isfinite(summary["final_loss"])

@@ -116,7 +116,7 @@ def test_a_bf16_training_step_agrees_with_fp32_within_bf16_rounding():
         with prec.autocast(p):
             pred = head.forward_flat(feats)
         loss, _ = reprojection_loss(pred, uv, R, t, K, torch.linalg.inv(K), 20.0, depth_min=0.15,
-                                    depth_max=1500.0, invalid_depth=15.0)
+                                    depth_max=1500.0, max_reproj=1000.0, invalid_depth=15.0)
         assert loss.dtype == torch.float32
         loss.backward()
         grad = torch.cat([q.grad.flatten() for q in head.parameters()])
@@ -131,8 +131,8 @@ def test_a_bf16_training_step_agrees_with_fp32_within_bf16_rounding():
 def test_training_at_a_fixed_precision_repeats_bit_for_bit(precision):
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
     opts = TrainOptions(iterations=4, batch_size=64, bundle_weight=0.0, precision=precision)
-    a, sa = train_head(buf, 3.0, opts, head_width=32)
-    b, _ = train_head(buf, 3.0, opts, head_width=32)
+    a, sa = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
+    b, _ = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
     assert sa["precision"] == precision
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
@@ -141,7 +141,8 @@ def test_training_at_a_fixed_precision_repeats_bit_for_bit(precision):
 def test_training_records_the_resolved_precision(monkeypatch, fresh_probe):
     monkeypatch.setattr(prec, "cpu_has_native_bf16", lambda: False)
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
-    _, summary = train_head(buf, 3.0, TrainOptions(iterations=2, batch_size=64, bundle_weight=0.0), head_width=32)
+    _, summary = train_head(buf, 3.0, TrainOptions(iterations=2, batch_size=64, bundle_weight=0.0), head_width=32,
+                            head_blocks=1)
     assert summary["precision"] == "fp32"
 
 
@@ -150,8 +151,8 @@ def test_the_heldout_curve_reads_the_head_without_changing_it():
     held, _, _ = synthetic_buffer(n_points=120, n_views=8, seed=0)  # the same points, seen again
     opts = TrainOptions(iterations=60, batch_size=256, lr=3e-3, threshold_start=20.0, bundle_weight=0.0,
                         validate_every=20)
-    a, plain = train_head(buf, 3.0, opts, head_width=64)
-    b, summary = train_head(buf, 3.0, opts, head_width=64, heldout=held)
+    a, plain = train_head(buf, 3.0, opts, head_width=64, head_blocks=1)
+    b, summary = train_head(buf, 3.0, opts, head_width=64, head_blocks=1, heldout=held)
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
     assert "heldout_curve" not in plain

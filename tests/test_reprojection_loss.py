@@ -9,6 +9,10 @@ import torch
 from usvc.train.reprojection_loss import reprojection_loss
 from usvc.train.schedule import circle_threshold
 
+# ACE's absolute bounds (metres at an indoor scale): the loss has no defaults of its own (the trainer
+# passes TrainOptions' bounds times the median depth), and these tests are written for ACE's values.
+ACE = {"depth_min": 0.1, "depth_max": 1000.0, "max_reproj": 1000.0, "invalid_depth": 10.0}
+
 
 def _random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
     q, r = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
@@ -40,23 +44,23 @@ def _to(b: dict[str, torch.Tensor], dtype: torch.dtype) -> dict[str, torch.Tenso
 
 
 def test_circle_threshold_endpoints_and_monotone() -> None:
-    assert circle_threshold(0, 100) == pytest.approx(51.0)
-    assert circle_threshold(100, 100) == pytest.approx(1.0)
-    assert circle_threshold(250, 100) == pytest.approx(1.0)
-    assert circle_threshold(50, 100) == pytest.approx(50 * math.sqrt(0.75) + 1)
-    values = [circle_threshold(i, 1000) for i in range(1001)]
+    assert circle_threshold(0, 100, 50.0, 1.0) == pytest.approx(51.0)
+    assert circle_threshold(100, 100, 50.0, 1.0) == pytest.approx(1.0)
+    assert circle_threshold(250, 100, 50.0, 1.0) == pytest.approx(1.0)
+    assert circle_threshold(50, 100, 50.0, 1.0) == pytest.approx(50 * math.sqrt(0.75) + 1)
+    values = [circle_threshold(i, 1000, 50.0, 1.0) for i in range(1001)]
     assert all(a > b for a, b in zip(values, values[1:]))
-    tt = circle_threshold(torch.arange(1001), 1000)
+    tt = circle_threshold(torch.arange(1001), 1000, 50.0, 1.0)
     assert isinstance(tt, torch.Tensor)
     np.testing.assert_allclose(tt.numpy(), values, rtol=1e-6)
     assert circle_threshold(0, 10, start=20.0, end=2.0) == pytest.approx(22.0)
     with pytest.raises(ValueError):
-        circle_threshold(0, 0)
+        circle_threshold(0, 0, 50.0, 1.0)
 
 
 def test_perfect_prediction_has_zero_loss() -> None:
     b = _to(_batch(64), torch.float32)
-    loss, stats = reprojection_loss(**b, threshold=10.0)
+    loss, stats = reprojection_loss(**b, threshold=10.0, **ACE)
     assert loss.ndim == 0 and loss.dtype == torch.float32
     assert loss.item() < 1e-2
     assert stats["valid_fraction"].item() == 1.0
@@ -65,7 +69,7 @@ def test_perfect_prediction_has_zero_loss() -> None:
 
 def test_point_behind_camera_pulls_to_depth_ten_on_ray() -> None:
     b = _batch(5, depth=torch.tensor([-2.0, 3.0, -0.5, 0.05, 2000.0], dtype=torch.float64))
-    loss, stats = reprojection_loss(**b, threshold=10.0)
+    loss, stats = reprojection_loss(**b, threshold=10.0, **ACE)
     # Camera coordinates of the predictions and the depth-10 points on the pixels' rays.
     p = torch.einsum("nij,nj->ni", b["R_w2c"], b["pred_xyz_world"]) + b["t_w2c"]
     uv1 = torch.cat([b["pixels"], torch.ones(5, 1, dtype=torch.float64)], dim=1)
@@ -79,7 +83,7 @@ def test_point_behind_camera_pulls_to_depth_ten_on_ray() -> None:
 def test_large_reprojection_error_is_invalid() -> None:
     b = _batch(2)
     b["pixels"] = b["pixels"] + torch.tensor([[600.0, 500.0], [0.0, 0.0]], dtype=torch.float64)
-    _, stats = reprojection_loss(**b, threshold=10.0)
+    _, stats = reprojection_loss(**b, threshold=10.0, **ACE)
     assert stats["valid_fraction"].item() == pytest.approx(0.5)
 
 
@@ -87,7 +91,7 @@ def test_tanh_clamp_bounds_valid_loss_by_threshold() -> None:
     b = _batch(32, seed=3)
     b["pixels"] = b["pixels"] + 300.0  # L1 error 600 px: valid but far beyond tau
     tau = 5.0
-    loss, stats = reprojection_loss(**b, threshold=tau)
+    loss, stats = reprojection_loss(**b, threshold=tau, **ACE)
     assert stats["valid_fraction"].item() == 1.0
     assert stats["reproj_mean"].item() == pytest.approx(600.0, rel=1e-6)
     assert loss.item() <= tau
@@ -95,7 +99,7 @@ def test_tanh_clamp_bounds_valid_loss_by_threshold() -> None:
     # Small errors are nearly linear: tau * tanh(e / tau) ~ e.
     b = _batch(1, seed=4)
     b["pixels"] = b["pixels"] + torch.tensor([[0.01, -0.02]], dtype=torch.float64)
-    loss, _ = reprojection_loss(**b, threshold=50.0)
+    loss, _ = reprojection_loss(**b, threshold=50.0, **ACE)
     assert loss.item() == pytest.approx(0.03, rel=1e-4)
 
 
@@ -107,7 +111,7 @@ def test_gradients_match_finite_differences() -> None:
     pred.requires_grad_(True)
 
     def f(x: torch.Tensor) -> torch.Tensor:
-        return reprojection_loss(x, **b, threshold=7.0)[0]
+        return reprojection_loss(x, **b, threshold=7.0, **ACE)[0]
 
     assert torch.autograd.gradcheck(f, (pred,), eps=1e-6, atol=1e-5)
 
@@ -118,7 +122,7 @@ def test_gradient_step_reduces_loss() -> None:
     pred = (b.pop("pred_xyz_world") + 0.3 * torch.randn(128, 3, generator=gen)).requires_grad_(True)
     losses = []
     for _ in range(5):
-        loss, _ = reprojection_loss(pred, **b, threshold=20.0)
+        loss, _ = reprojection_loss(pred, **b, threshold=20.0, **ACE)
         losses.append(loss.item())
         (grad,) = torch.autograd.grad(loss, pred)
         with torch.no_grad():
@@ -130,29 +134,29 @@ def test_shape_mismatch_raises() -> None:
     b = _batch(4)
     b["pixels"] = b["pixels"][:3]
     with pytest.raises(ValueError):
-        reprojection_loss(**b, threshold=1.0)
+        reprojection_loss(**b, threshold=1.0, **ACE)
 
 
 def test_half_inputs_and_autocast_are_computed_in_fp32() -> None:
     b64 = _batch(256, seed=9)
     b64["pred_xyz_world"] = b64["pred_xyz_world"] + 0.01
     b16 = _to(b64, torch.float16)
-    ref, _ = reprojection_loss(**_to(b16, torch.float64), threshold=10.0)
-    loss16, stats = reprojection_loss(**b16, threshold=10.0)
+    ref, _ = reprojection_loss(**_to(b16, torch.float64), threshold=10.0, **ACE)
+    loss16, stats = reprojection_loss(**b16, threshold=10.0, **ACE)
     assert loss16.dtype == torch.float32 and stats["reproj_mean"].dtype == torch.float32
     assert loss16.item() == pytest.approx(ref.item(), rel=1e-4)
 
     b32 = _to(b64, torch.float32)
-    plain, _ = reprojection_loss(**b32, threshold=10.0)
+    plain, _ = reprojection_loss(**b32, threshold=10.0, **ACE)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        auto, _ = reprojection_loss(**b32, threshold=10.0)
+        auto, _ = reprojection_loss(**b32, threshold=10.0, **ACE)
     assert auto.dtype == torch.float32
     assert auto.item() == pytest.approx(plain.item(), rel=1e-6)
 
 
 def test_no_valid_sample_gives_nan_stats() -> None:
     b = _batch(3, depth=torch.full((3,), -1.0, dtype=torch.float64))
-    loss, stats = reprojection_loss(**b, threshold=10.0)
+    loss, stats = reprojection_loss(**b, threshold=10.0, **ACE)
     assert torch.isfinite(loss)
     assert stats["valid_fraction"].item() == 0.0
     assert math.isnan(stats["reproj_mean"].item()) and math.isnan(stats["reproj_median"].item())

@@ -75,7 +75,7 @@ OPTS = TrainOptions(iterations=400, batch_size=512, lr=3e-3, threshold_start=20.
 def test_training_recovers_points_from_reprojection_alone():
     buf, pts, feats = synthetic_buffer()
     np.testing.assert_allclose(mapping_center(buf), [0, 0, 0.5], atol=1e-5)
-    head, summary = train_head(buf, median_depth=3.0, opts=OPTS, head_width=128)
+    head, summary = train_head(buf, median_depth=3.0, opts=OPTS, head_width=128, head_blocks=1)
     with torch.no_grad():
         pred = head.forward_flat(torch.from_numpy(feats).float()).numpy()
     err = np.linalg.norm(pred - pts, axis=1)
@@ -87,13 +87,13 @@ def test_training_recovers_points_from_reprojection_alone():
 def test_training_is_deterministic_and_adabelief_runs():
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
     short = TrainOptions(iterations=5, batch_size=64, bundle_weight=0.0)
-    a, _ = train_head(buf, 3.0, short, head_width=32)
-    b, _ = train_head(buf, 3.0, short, head_width=32)
+    a, _ = train_head(buf, 3.0, short, head_width=32, head_blocks=1)
+    b, _ = train_head(buf, 3.0, short, head_width=32, head_blocks=1)
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
     c, summary = train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, bundle_weight=0.0,
                                                    optimizer="adabelief", lr=1e-4, schedule="constant"),
-                            head_width=32)
+                            head_width=32, head_blocks=1)
     assert np.isfinite(summary["final_loss"])
 
 
@@ -105,7 +105,7 @@ def test_training_is_deterministic_and_adabelief_runs():
 def test_bad_training_input_is_named(opts, depth, message):
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
     with pytest.raises(UsvcError, match=message):
-        train_head(buf, depth, opts)
+        train_head(buf, depth, opts, head_width=256, head_blocks=1)
 
 
 def with_keypoint_tuples(buf: TrainingBuffer, pts: np.ndarray, feats: np.ndarray, one_view_pixels: bool):
@@ -130,8 +130,9 @@ def with_keypoint_tuples(buf: TrainingBuffer, pts: np.ndarray, feats: np.ndarray
 def test_zero_bundle_weight_is_exactly_single_view_training():
     buf, pts, feats = synthetic_buffer(n_points=50, n_views=4)
     opts = TrainOptions(iterations=5, batch_size=64, bundle_weight=0.0)
-    a, _ = train_head(buf, 3.0, opts, head_width=32)
-    b, _ = train_head(with_keypoint_tuples(buf, pts, feats, one_view_pixels=False), 3.0, opts, head_width=32)
+    a, _ = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
+    b, _ = train_head(with_keypoint_tuples(buf, pts, feats, one_view_pixels=False), 3.0, opts, head_width=32,
+                      head_blocks=1)
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(va, vb, rtol=0, atol=0, msg=k)
 
@@ -150,7 +151,7 @@ def test_bundle_loss_recovers_depth_that_single_view_reprojection_leaves_open():
     for weight in (0.0, 1.0):
         opts = TrainOptions(iterations=800, batch_size=128, lr=3e-3, threshold_start=20.0,
                             bundle_weight=weight, bundle_groups_per_batch=32, bundle_obs_per_group=8)
-        head, summary = train_head(buf, 3.0, opts, head_width=128)
+        head, summary = train_head(buf, 3.0, opts, head_width=128, head_blocks=1)
         with torch.no_grad():
             pred = head.forward_flat(torch.from_numpy(feats).float()).numpy()
         errors[weight] = float(np.median(np.linalg.norm(pred - pts, axis=1)))
@@ -162,4 +163,4 @@ def test_bundle_loss_recovers_depth_that_single_view_reprojection_leaves_open():
 def test_bundle_weight_without_keypoint_tuples_is_refused():
     buf, _, _ = synthetic_buffer(n_points=50, n_views=4)
     with pytest.raises(UsvcError, match="keypoint observations"):
-        train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, bundle_weight=1.0), head_width=32)
+        train_head(buf, 3.0, TrainOptions(iterations=5, batch_size=64, bundle_weight=1.0), head_width=32, head_blocks=1)

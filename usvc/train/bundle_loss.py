@@ -49,11 +49,12 @@ def _squared(pred: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor, t: torch
 
 
 def bundle_loss(pred: torch.Tensor, group_sizes: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor,
-                t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float, form: str = "tanh",
-                depth_min: float = 0.1, depth_max: float = 1000.0, invalid_depth: float = 10.0,
-                max_reproj: float = 1000.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float, *, form: str,
+                depth_min: float, depth_max: float, invalid_depth: float,
+                max_reproj: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean pair loss over the groups. Observation rows (pred, pixels, and their view's R, t, K)
-    are laid out group after group, `group_sizes` long each."""
+    are laid out group after group, `group_sizes` long each. `form` and the bounds come from
+    `TrainOptions` through the trainer (as in `reprojection_loss`); none has a default here."""
     if form not in FORMS:
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
     a, b = group_pairs(group_sizes.cpu())

@@ -42,15 +42,18 @@ def reprojection_loss(
     K: torch.Tensor,
     K_inv: torch.Tensor,
     threshold: float | torch.Tensor,
-    depth_min: float = 0.1,
-    depth_max: float = 1000.0,
-    max_reproj: float = 1000.0,
-    invalid_depth: float = 10.0,
+    *,
+    depth_min: float,
+    depth_max: float,
+    max_reproj: float,
+    invalid_depth: float,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean loss over N samples and detached statistics.
 
     Shapes: pred_xyz_world (N, 3), pixels (N, 2), R_w2c (N, 3, 3), t_w2c (N, 3), K and K_inv
-    (N, 3, 3). ``threshold`` is tau in pixels (see ``schedule.circle_threshold``).
+    (N, 3, 3). ``threshold`` is tau in pixels (see ``schedule.circle_threshold``). The depth bounds,
+    ``max_reproj`` and ``invalid_depth`` have no defaults: the trainer derives them from
+    `TrainOptions` (relative to the scene's median depth), so a value lives in one place.
 
     Stats (0-dim detached tensors, so the caller decides when to synchronise): ``valid_fraction``,
     ``reproj_mean`` and ``reproj_median`` (lower median) of the valid samples' L1 pixel errors

@@ -3,7 +3,7 @@
 tau(t) = (1 - w(t)) * start + end,  w(t) = 1 - sqrt(1 - (t / T)^2).
 
 ``start`` is the part of the threshold that decays and ``end`` the floor, so tau(0) = start + end
-(51 px with the defaults) and tau(T) = end (1 px). The quarter-circle keeps the threshold wide for
+(51 px with train's defaults, 50 + 1) and tau(T) = end (1 px). The quarter-circle keeps the threshold wide for
 most of training, letting coarse predictions still pull towards the pixel, and tightens it fast
 at the end, when the map only needs refining.
 """
@@ -16,9 +16,10 @@ import torch
 
 
 def circle_threshold(
-    t: int | float | torch.Tensor, total: int, start: float = 50.0, end: float = 1.0
+    t: int | float | torch.Tensor, total: int, start: float, end: float
 ) -> float | torch.Tensor:
-    """Threshold in pixels at iteration ``t`` of ``total``; t is clamped to [0, total].
+    """Threshold in pixels at iteration ``t`` of ``total``; t is clamped to [0, total]. ``start``
+    and ``end`` are `TrainOptions.threshold_start` and `threshold_end` (no defaults here).
 
     Returns a float for a scalar t and a tensor (same device, floating dtype) for a tensor t.
     1 - w(t) is evaluated as sqrt((T - t)(T + t)) / T, which stays accurate in fp32 near T.

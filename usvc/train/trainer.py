@@ -77,15 +77,16 @@ def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
     return optim, sched
 
 
-def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, head_width: int = 256,
-               head_blocks: int = 1, seed: int = 0, device: str = "cpu",
+def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, head_width: int,
+               head_blocks: int, seed: int = 0, device: str = "cpu",
                heldout: TrainingBuffer | None = None) -> tuple[Head, dict[str, Any]]:
-    """Fit a fresh head (`head_width` channels, `head_blocks` residual blocks: the model's) to the
-    buffer; returns it and training statistics. `seed` fixes the head's initialisation and the
-    batches. The head's products run at `opts.precision` (resolved for `device`; the statistics
-    say which); the losses, master weights and optimizer state stay fp32. With `heldout` (cells of
-    mapping images the buffer withheld) and `opts.validate_every`, the statistics carry the held-out
-    fit over training; it reads the head only, so the trained head is the same with or without it."""
+    """Fit a fresh head (`head_width` channels, `head_blocks` residual blocks: the caller passes
+    `ModelOptions`' values; no defaults here) to the buffer; returns it and training statistics.
+    `seed` fixes the head's initialisation and the batches. The head's products run at
+    `opts.precision` (resolved for `device`; the statistics say which); the losses, master weights
+    and optimizer state stay fp32. With `heldout` (cells of mapping images the buffer withheld) and
+    `opts.validate_every`, the statistics carry the held-out fit over training; it reads the head
+    only, so the trained head is the same with or without it."""
     check(opts, "train")
     precision = resolve_precision(opts.precision, device)
     if not (np.isfinite(median_depth) and median_depth > 0):
@@ -129,14 +130,14 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, hea
 
     optim, sched = _optimizer(opts, head.parameters())
     order = torch.randperm(n, generator=gen)
-    cursor, epochs = 0, 0
+    cursor = 0
     history: list[tuple[float, float, float]] = []
     validation: list[dict[str, float]] = []
     start = time.perf_counter()
     bar = tqdm(range(opts.iterations), desc="train", unit="it")
     for it in bar:
         if cursor + opts.batch_size > n:
-            order, cursor, epochs = torch.randperm(n, generator=gen), 0, epochs + 1
+            order, cursor = torch.randperm(n, generator=gen), 0
         idx = order[cursor:cursor + opts.batch_size]
         cursor += opts.batch_size
         v = view[idx]
