@@ -10,6 +10,9 @@ from usvc.core.options import in_range, non_negative, positive
 
 @dataclass
 class GaussiansOptions:
+    """3DGS fit (stages/gaussians.py). The defaults are sized for the miniature scene on a 2-core CPU
+    (about 2 minutes); the reference 3DGS schedule is gaussians=reference (GPU-sized)."""
+
     iterations: int = 400  # optimiser steps, one image each
     width: int = 160  # fit and evaluation width, px; 0 = the prepared images' width
     sh_degree: int = 3  # spherical-harmonic degree of the colours (0..3)

@@ -13,8 +13,9 @@ from usvc.core.errors import UsvcError
 
 @dataclass
 class RoomParams:
-    """Scene, texture, lighting, trajectory and rendering settings (metres, pixels, seconds): the
-    options of the generate step (the `generate` config group)."""
+    """The miniature room (usvc/generate): scene, texture, lighting, trajectory and rendering
+    settings (metres, pixels, seconds), the options of the generate step (the `generate` config
+    group). Seeded, so the same values give byte-identical images."""
 
     seed: int = 0  # the room, its textures and trajectories follow from this seed
     # Camera: pinhole, fx = fy = focal, principal point at the image centre (W/2, H/2).

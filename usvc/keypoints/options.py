@@ -11,6 +11,8 @@ WEIGHTS = ("uniform", "reprojection")
 
 @dataclass
 class KeypointOptions:
+    """Keypoints, paper eq. 1-3: M(X) = sum_i w_i exp(-|phi(X) - d_i|^2 / 2 sigma^2), keep M >= tau."""
+
     tau: float = 1.5  # an SfM point is a keypoint when its score M(X) reaches tau
     sigma: float = 0.15  # kernel bandwidth (L2-normalised SIFT units): a view at the median distance from its track mean (~0.17) counts ~half
     weights: str = "uniform"  # uniform (w_i = 1: M is a soft count of consistent views) | reprojection

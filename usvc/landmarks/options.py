@@ -12,6 +12,8 @@ DESCRIPTORS = ("mean", "medoid")
 
 @dataclass
 class LandmarksOptions:
+    """The SfM points as landmarks for feature refinement at query time (relocalize.refine=features)."""
+
     descriptor: str = "mean"  # one descriptor per point: mean (of the track's unit RootSIFT descriptors, renormalised) | medoid (the track's most central observation)
     min_track_length: int = 2  # points seen in fewer mapping images are left out
     max_error_px: float = 4.0  # points whose mean reprojection error exceeds this are left out (px of the mapping images)

@@ -27,7 +27,7 @@ class SceneOptions:
     working_width: int = 640  # images are resized to this width before anything else; 0 = keep
     undistort_fov: str = "crop"  # distorted cameras become pinhole: crop (no black border) | full (every pixel)
     generated: bool = False  # produced by the generate stage (the bundled miniature scene)
-    exif_focal: bool = True  # format images: EXIF focal lengths are SfM's prior (false: ignored, estimated by SfM)
+    exif_focal: bool = True  # format images (unposed photos): EXIF focal lengths are SfM's prior (false, or `usvc map --no-exif`: ignored, estimated by SfM)
 
     def problems(self) -> list[str]:
         out = one_of(self, "format", FORMATS) + one_of(self, "split", SPLIT_RULES)

@@ -4,7 +4,9 @@ guided by the learned pose) or keypoint-guided (paper 3.2.2)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from usvc.core.options import in_range, one_of, positive
 from usvc.core.precision import PRECISIONS
@@ -16,16 +18,30 @@ REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier t
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
 # cell "agrees" with a pose far off, so confidence says nothing.
 MAX_ERROR_PX = 100.0
+# The keypoint-guided refinement's values: `refine_<name>` here, `<name>` in RefineOptions
+# (usvc/relocalize/refinement.py), which is built from them. `refine_problems` is the one rule for both.
+REFINE_VALUES = ("radius_px", "max_iterations", "delta", "min_correspondences")
+
+
+def refine_problems(opts: Any, prefix: str = "") -> list[str]:
+    """The refinement's values (`prefix` + each of REFINE_VALUES) must be finite and > 0: T_max = 0
+    would never refine, and delta = 0 would never converge."""
+    names = [prefix + name for name in REFINE_VALUES]
+    out = positive(opts, *names)
+    return out + [f"{n}={getattr(opts, n)!r} must be finite" for n in names
+                  if getattr(opts, n) > 0 and not math.isfinite(getattr(opts, n))]
 
 
 @dataclass
 class RelocalizeOptions:
-    backend: str = "opencv"  # RANSAC-PnP solver: opencv | pycolmap
-    max_error_px: float = 10.0  # RANSAC inlier threshold in px of a 480 px short side, scaled to the working size
+    """Relocalization: query -> dense scene coordinates -> RANSAC-PnP, then refinement."""
+
+    backend: str = "opencv"  # RANSAC-PnP solver: opencv | pycolmap (the default chosen by benchmarks/pnp_solvers.py)
+    max_error_px: float = 10.0  # RANSAC inlier threshold in px of a 480 px short side (ACE's), scaled to the map's working short side
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)
     focal_tolerance: float = 0.25  # given focal length vs the one the map implies: a larger relative gap fails; 0 = no check
-    refine: str = "features"  # features: the query's SIFT matched to the map's landmarks, guided by the learned pose | keypoints: the paper's keypoint-guided refinement (3.2.2) | none
+    refine: str = "features"  # features: the query's SIFT matched to the map's landmarks, guided by the learned pose | keypoints: the paper's keypoint-guided refinement (3.2.2) | none; the method group sets it
     refine_radius_px: float = 8.0  # cells within this radius (working-image px) of a projected keypoint form the mask
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
@@ -42,9 +58,8 @@ class RelocalizeOptions:
     def problems(self) -> list[str]:
         out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
         out += one_of(self, "refine", REFINE) + one_of(self, "features_extractor", EXTRACTORS)
-        out += positive(self, "max_error_px", "min_inliers", "refine_radius_px", "refine_max_iterations",
-                        "refine_delta", "refine_min_correspondences", "features_max_keypoints",
-                        "features_max_error_px", "features_view_margin_deg")
+        out += positive(self, "max_error_px", "min_inliers") + refine_problems(self, "refine_")
+        out += positive(self, "features_max_keypoints", "features_max_error_px", "features_view_margin_deg")
         for name in ("max_error_px", "features_max_error_px"):
             value = getattr(self, name)
             if isinstance(value, (int, float)) and value > MAX_ERROR_PX:

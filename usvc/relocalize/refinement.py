@@ -17,7 +17,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from usvc.core.errors import UsvcError
+from usvc.core.options import check
 from usvc.core.scene import Camera
+from usvc.relocalize.options import refine_problems
 from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
 
 log = logging.getLogger(__name__)
@@ -25,22 +27,19 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """Refinement parameters, from the `refine_*` fields of RelocalizeOptions (no defaults of their own)."""
+    """Refinement parameters, from the `refine_*` fields of RelocalizeOptions (no defaults of their
+    own; `relocalizer.refine_options` builds them), checked by the same rule (`refine_problems`)."""
 
     radius_px: float  # cells within this distance (working-image px) of a projected keypoint are used
     max_iterations: int  # T_max: at most this many PnP re-solves
     delta: float  # stop once |R_new - R_old|_F + |t_new - t_old| / median_depth is below this
     min_correspondences: int  # fewer masked cells than this (and never < 4): stop
 
+    def problems(self) -> list[str]:
+        return refine_problems(self)
+
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.radius_px) and self.radius_px > 0):
-            raise UsvcError(f"refinement radius_px must be positive, got {self.radius_px}")
-        if self.max_iterations < 0:
-            raise UsvcError(f"refinement max_iterations must be >= 0, got {self.max_iterations}")
-        if not (math.isfinite(self.delta) and self.delta >= 0):
-            raise UsvcError(f"refinement delta must be >= 0, got {self.delta}")
-        if self.min_correspondences < 1:
-            raise UsvcError(f"refinement min_correspondences must be positive, got {self.min_correspondences}")
+        check(self, "refinement")
 
 
 @dataclass
@@ -98,8 +97,8 @@ def refine_pose(
     t0: np.ndarray,
     *,
     max_error_px: float,
+    options: RefineOptions,
     median_depth: float | None = None,
-    options: RefineOptions | None = None,
     backend: str = "opencv",
     seed: int = 0,
     min_inliers: int = 10,
@@ -111,7 +110,7 @@ def refine_pose(
     count so the only difference is which cells it sees. `median_depth` (scene units) makes the
     convergence test scale-free; None or invalid falls back to 1.0.
     """
-    opts = options or RefineOptions()
+    opts = options
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
     R0 = np.asarray(R0, dtype=np.float64)

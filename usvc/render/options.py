@@ -10,6 +10,8 @@ from usvc.core.options import non_negative, positive
 
 @dataclass
 class RenderOptions:
+    """Novel views rendered from the 3DGS model around keypoint clusters (stages/render.py)."""
+
     views: int = 30  # novel views to render
     max_angle_deg: float = 20.0  # orbit about the keypoint cluster's centre, away from the source view (degrees)
     max_translation_rel: float = 0.1  # plus a camera translation up to this fraction of the cluster's depth

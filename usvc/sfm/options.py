@@ -12,6 +12,9 @@ RECONSTRUCTION = ("auto", "triangulate", "incremental")
 
 @dataclass
 class SfmOptions:
+    """Structure from motion with COLMAP: SIFT features, matching, then triangulation with the given
+    poses held fixed (incremental mapping when the scene has none)."""
+
     max_num_features: int = 4096  # SIFT features per image
     matching: str = "auto"  # auto: exhaustive up to exhaustive_max_images, else pose-guided (sequential without poses) | exhaustive | sequential | poses
     exhaustive_max_images: int = 150  # matching=auto: exhaustive matching up to this many images
@@ -21,7 +24,7 @@ class SfmOptions:
     min_points: int = 100  # fewer triangulated points than this is a degenerate scene
     num_threads: int = -1  # COLMAP feature-extraction threads (matching uses one, for reproducible runs); -1 = the top-level threads setting
     seed: int = 0  # COLMAP's RANSAC seed, apart from the mapping seed so mapping seeds reuse the SfM
-    verbose: bool = False  # show COLMAP's own log (quiet unless asked)
+    verbose: bool = False  # show COLMAP's own per-image log (quiet unless asked)
 
     def problems(self) -> list[str]:
         out = one_of(self, "matching", MATCHING) + one_of(self, "reconstruction", RECONSTRUCTION)

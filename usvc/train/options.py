@@ -15,8 +15,11 @@ BUNDLE_FORMS = ("tanh", "squared")
 
 @dataclass
 class TrainOptions:
+    """Head training with ACE's reprojection loss plus the multi-view bundle loss (paper eq. 8).
+    Depth bounds are in units of the median scene depth."""
+
     iterations: int = 0  # optimiser steps; 0 = passes over the buffer (steps_for), so training grows with the buffer
-    passes: float = 46.875  # iterations=0: passes x buffer cells / batch_size steps (6,000 on the smallest buffer)
+    passes: float = 46.875  # iterations=0: passes x buffer cells / batch_size steps (6,000 on the smallest buffer, 262,144 cells)
     batch_size: int = 2048  # buffer cells per step
     optimizer: str = "adamw"  # adamw | adabelief
     lr: float = 5e-3  # peak learning rate of the one-cycle schedule, or the constant one
@@ -30,12 +33,12 @@ class TrainOptions:
     invalid_depth_rel: float = 5.0  # invalid predictions are pulled to this depth (x the median depth) on their pixel ray
     max_reproj_px: float = 1000.0  # reprojection errors above this count as invalid
     reproj_weight: float = 1.0  # lambda_pi (paper eq. 8)
-    bundle_weight: float = 0.25  # lambda_B (paper eq. 8, where it is 1.0); 0 = ACE-style single-view training
+    bundle_weight: float = 0.25  # lambda_B (paper eq. 8, where it is 1.0); 0 = ACE-style single-view training; the method group sets it (single: 0)
     bundle_loss: str = "tanh"  # tanh (ACE's soft clamp, sharing the threshold schedule) | squared (eq. 7 as printed)
     bundle_groups_per_batch: int = 64  # whole keypoint groups mixed into every batch of pixel samples
     bundle_obs_per_group: int = 16  # observations drawn per group (all of them when fewer)
     precision: str = "auto"  # the head's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
-    validate_every: int = 500  # held-out reprojection every this many steps, when the buffer has held-out views; 0 = never
+    validate_every: int = 500  # held-out reprojection every this many steps, when the buffer has held-out views (buffer.holdout_every > 0); 0 = never
 
     def problems(self) -> list[str]:
         out = one_of(self, "optimizer", OPTIMIZERS) + one_of(self, "schedule", SCHEDULES)
