@@ -230,7 +230,7 @@ def test_sweep_table_reads_job_dirs(tmp_path):
 
 @pytest.mark.slow
 def test_sweep_refuses_scene_only_before_running_anything(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "stages.sweep", "scene=mini", f"hydra.run.dir={tmp_path}/job"],
+    proc = subprocess.run([sys.executable, "-m", "tools.sweep", "scene=mini", f"hydra.run.dir={tmp_path}/job"],
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
     assert "nothing to sweep" in proc.stderr + proc.stdout

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from usvc.buffer.build import TrainingBuffer
+from usvc.buffer.buffer_file import TrainingBuffer
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.options import check
