@@ -35,7 +35,7 @@ from usvc.pipeline.logs import script_logging  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.relocalize.queries_file import QueryStats  # noqa: E402
 from usvc.sfm.reconstruction import SfmOptions  # noqa: E402
-from usvc.sfm.tracks import read_median_depth  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 
 
 def mean_std(summaries: list[dict]) -> tuple[dict, dict]:

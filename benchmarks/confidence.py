@@ -43,7 +43,7 @@ from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
-from usvc.sfm.tracks import read_median_depth  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 
 ROT_DEG, TRANS_FRAC = 5.0, 0.03
 TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera axes after turning the image clockwise

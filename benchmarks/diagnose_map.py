@@ -36,7 +36,7 @@ from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.logs import script_logging  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
-from usvc.sfm.tracks import read_median_depth, read_tracks  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth, read_tracks  # noqa: E402
 from usvc.weights import load_configured_encoder  # noqa: E402
 
 PROBES = {"small": (0.5, None, "ace"), "default": (1.0, None, "ace"), "xfeat": (1.0, None, "xfeat")}

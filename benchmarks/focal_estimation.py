@@ -27,7 +27,7 @@ from usvc.core.pose_errors import rotation_error_deg, summarize, translation_err
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.relocalizer import Relocalizer  # noqa: E402
-from usvc.sfm.tracks import read_median_depth  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 
 
 def main() -> None:

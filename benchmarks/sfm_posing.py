@@ -36,7 +36,7 @@ from usvc.core.scene import Frame  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.metrics.alignment import align_and_compare  # noqa: E402
 from usvc.pipeline.paths import SCENE_H5, TRACKS_H5  # noqa: E402
-from usvc.sfm.tracks import read_median_depth  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 
 
 def _file_name(name: str) -> str:

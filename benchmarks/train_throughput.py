@@ -43,7 +43,7 @@ from usvc.model.head import Head  # noqa: E402
 from usvc.pipeline import threads as thread_policy  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
 from usvc.pipeline.stage import scene_paths  # noqa: E402
-from usvc.sfm.tracks import read_median_depth  # noqa: E402
+from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 from usvc.train.trainer import TrainOptions, train_head  # noqa: E402
 
 

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

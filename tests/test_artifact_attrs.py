@@ -22,7 +22,7 @@ from usvc.relocalize.relocalize_scene import write_results
 from usvc.relocalize.pose_estimate import PoseEstimate
 from usvc.render.views_file import NovelView
 from usvc.render.views_file import write_rendered_views
-from usvc.sfm.tracks import Tracks, write_tracks
+from usvc.sfm.tracks_file import Tracks, write_tracks
 
 DOC = REPO / "docs" / "artifacts.md"
 FRAMES = {"world", "camera", "image", "world->camera", "camera->image"}

@@ -18,7 +18,7 @@ from usvc.core import artifact_names
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import read_scene_h5, write_scene_h5
-from usvc.sfm.tracks import MEDIAN_DEPTH_ATTR, median_scene_depth, read_median_depth, read_tracks, write_tracks
+from usvc.sfm.tracks_file import MEDIAN_DEPTH_ATTR, median_scene_depth, read_median_depth, read_tracks, write_tracks
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = {value: name for name, value in vars(artifact_names).items() if name.isupper()}

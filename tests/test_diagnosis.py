@@ -16,7 +16,7 @@ from usvc.analysis.diagnosis import (
 )
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder, cell_centers
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
 

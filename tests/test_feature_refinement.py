@@ -33,7 +33,7 @@ from usvc.relocalize.feature_refinement import (
 )
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer, feature_options
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 OPTS = FeatureMatchOptions(radii_px=(24.0, 6.0, 2.0), ratio=0.8, max_error_px=1.5, min_inliers=12,
                            view_margin_deg=45.0)

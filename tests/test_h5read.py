@@ -10,7 +10,7 @@ from usvc.buffer.buffer_file import read_buffer, read_buffer_attrs
 from usvc.core.errors import UsvcError
 from usvc.core.scene_file import read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
-from usvc.sfm.tracks import read_tracks
+from usvc.sfm.tracks_file import read_tracks
 
 READERS = [
     (lambda d: read_scene_h5(d / "scene.h5"), "scene.h5", "prepared scene"),

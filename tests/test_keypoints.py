@@ -4,7 +4,7 @@ import pytest
 from usvc.core.errors import KeypointError
 from usvc.keypoints.keypoints_file import write_keypoints
 from usvc.keypoints.scoring import KeypointOptions, score_points, select_keypoints
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 OPTS = KeypointOptions(tau=1.5, sigma=0.25, weights="uniform", reprojection_scale_px=1.0, min_track_length=2)
 

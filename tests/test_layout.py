@@ -37,14 +37,14 @@ def test_a_dep_missing_from_dvc_yaml_is_reported(tmp_path):
     code_deps.rewrite(correct)
     assert code_deps.differences(correct) == {}
     text = correct.read_text()
-    assert "        - usvc/sfm/tracks.py\n" in text
+    assert "        - usvc/sfm/tracks_file.py\n" in text
     broken = tmp_path / "dvc.yaml"
     # Drop tracks.py from every stage that lists it, and add a module that no stage imports.
-    broken.write_text(text.replace("        - usvc/sfm/tracks.py\n", "").replace(
+    broken.write_text(text.replace("        - usvc/sfm/tracks_file.py\n", "").replace(
         "        - stages/relocalize.py\n", "        - stages/relocalize.py\n        - usvc/gaussians/fit.py\n"))
     diff = code_deps.differences(broken)
-    assert diff["train"][0] == ["usvc/sfm/tracks.py"]
-    assert diff["keypoints"][0] == ["usvc/sfm/tracks.py"]
+    assert diff["train"][0] == ["usvc/sfm/tracks_file.py"]
+    assert diff["keypoints"][0] == ["usvc/sfm/tracks_file.py"]
     assert diff["relocalize"] == ([], ["usvc/gaussians/fit.py"])
 
 

@@ -8,7 +8,7 @@ from conftest import tracks_of
 from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
-from usvc.sfm.tracks import median_scene_depth
+from usvc.sfm.tracks_file import median_scene_depth
 
 
 def test_median_depth_of_known_observations():

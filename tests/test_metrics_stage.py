@@ -40,7 +40,7 @@ from usvc.relocalize.queries_file import (
     read_query_stats,
     read_refinement_records,
 )
-from usvc.sfm.tracks import write_tracks
+from usvc.sfm.tracks_file import write_tracks
 
 CAM = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 N_QUERIES = 8

@@ -15,7 +15,7 @@ from usvc.pretrain.real_corpus import (
     REFERENCE_DEPTH,
     real_corpus_scene,
 )
-from usvc.sfm.tracks import Tracks, write_tracks
+from usvc.sfm.tracks_file import Tracks, write_tracks
 
 H, W, F = 48, 64, 50.0
 

@@ -12,7 +12,7 @@ from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.prepare.importers import load_scene
 from usvc.prepare.working_images import prepare_scene
 from usvc.sfm.reconstruction import SfmOptions, pose_pairs, reconstruct
-from usvc.sfm.tracks import from_reconstruction, read_tracks, sfm_stats, write_tracks
+from usvc.sfm.tracks_file import from_reconstruction, read_tracks, sfm_stats, write_tracks
 
 OPTS = SfmOptions(max_num_features=4096, matching="auto", exhaustive_max_images=150, sequential_overlap=10,
                   pose_pairs_per_image=20, reconstruction="auto", min_points=100, num_threads=-1, seed=0)
@@ -105,7 +105,7 @@ import sys
 from pathlib import Path
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.sfm.reconstruction import SfmOptions, reconstruct
-from usvc.sfm.tracks import from_reconstruction, write_tracks
+from usvc.sfm.tracks_file import from_reconstruction, write_tracks
 prepared, work = Path(sys.argv[1]), Path(sys.argv[2])
 opts = SfmOptions(**eval(sys.argv[3]))
 rec, _ = reconstruct(read_scene_h5(prepared / "scene.h5").split("train"), prepared / IMAGE_DIR, work, opts, has_poses=True,

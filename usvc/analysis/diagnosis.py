@@ -24,7 +24,7 @@ from usvc.buffer.keypoint_obs import sample_features
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.preprocess import normalise
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 BEHIND_PX = 1000.0  # reprojection error charged to a coordinate predicted behind the camera
 

@@ -15,7 +15,7 @@ from usvc.core.artifact_names import SPLAT_CHECK_PNG, SPLAT_PLY
 from usvc.core.scene_file import read_scene_h5
 from usvc.gaussians.fit import FitImage, fit_gaussians, load_fit_images, split_holdout
 from usvc.gaussians.options import GaussiansOptions
-from usvc.sfm.tracks import Tracks, read_tracks
+from usvc.sfm.tracks_file import Tracks, read_tracks
 from usvc.splat.gaussians import Gaussians, from_points
 from usvc.splat.ply_file import read_splat_ply, write_splat_ply
 from usvc.splat.rasterize import render

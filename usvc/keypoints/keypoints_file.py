@@ -14,7 +14,7 @@ import numpy as np
 
 from usvc.core.errors import KeypointError
 from usvc.core.h5_file import Field, read_h5, write_h5
-from usvc.sfm.tracks import IMAGES_SCHEMA, PIXELS, Tracks, write_images_group
+from usvc.sfm.tracks_file import IMAGES_SCHEMA, PIXELS, Tracks, write_images_group
 
 KEYPOINTS_FORMAT, KEYPOINTS_VERSION = "usvc-keypoints", 1
 

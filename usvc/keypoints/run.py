@@ -12,7 +12,7 @@ from usvc.core.points_file import write_points_ply
 from usvc.keypoints.keypoints_file import write_keypoints
 from usvc.keypoints.options import KeypointOptions
 from usvc.keypoints.scoring import keypoint_stats, select_keypoints
-from usvc.sfm.tracks import read_tracks
+from usvc.sfm.tracks_file import read_tracks
 
 log = logging.getLogger("usvc")
 

@@ -14,7 +14,7 @@ import numpy as np
 from usvc.core.errors import KeypointError
 from usvc.keypoints.keypoints_file import Keypoints
 from usvc.keypoints.options import KeypointOptions
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 
 def normalise(descriptors: np.ndarray) -> np.ndarray:

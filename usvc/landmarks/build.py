@@ -10,7 +10,7 @@ from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.options import LandmarksOptions
-from usvc.sfm.tracks import Tracks
+from usvc.sfm.tracks_file import Tracks
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from usvc.core.scene_file import read_scene_h5
 from usvc.landmarks.build import build_landmarks, landmark_stats
 from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.landmarks.options import LandmarksOptions
-from usvc.sfm.tracks import read_tracks
+from usvc.sfm.tracks_file import read_tracks
 
 log = logging.getLogger("usvc")
 

@@ -14,7 +14,7 @@ from usvc.core.scene_file import read_scene_h5
 from usvc.metrics.evaluate import PER_QUERY_COLUMNS, evaluate_initial_poses, evaluate_poses, headline_figures
 from usvc.metrics.plots import write_plots
 from usvc.relocalize.queries_file import read_query_stats, read_refinement_records
-from usvc.sfm.tracks import read_median_depth
+from usvc.sfm.tracks_file import read_median_depth
 
 log = logging.getLogger("usvc")
 

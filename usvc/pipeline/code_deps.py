@@ -26,7 +26,7 @@ CODE_ROOTS = ("usvc", "stages")
 
 
 def module_file(module: str, root: Path = ROOT) -> Path | None:
-    """`usvc.sfm.tracks` -> usvc/sfm/tracks.py (or the package's __init__.py); None if not ours."""
+    """`usvc.sfm.tracks_file` -> usvc/sfm/tracks_file.py (or the package's __init__.py); None if not ours."""
     if module.split(".")[0] not in CODE_ROOTS:
         return None
     base = root.joinpath(*module.split("."))

@@ -26,7 +26,7 @@ from usvc.core.images import read_image_bgr
 from usvc.core.scene_file import read_scene_h5
 from usvc.model.preprocess import luma01
 from usvc.pretrain.pretrain_data import CorpusScene
-from usvc.sfm.tracks import read_median_depth, read_tracks
+from usvc.sfm.tracks_file import read_median_depth, read_tracks
 
 log = logging.getLogger(__name__)
 

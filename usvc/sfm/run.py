@@ -13,7 +13,7 @@ from usvc.core.points_file import write_points_ply
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.reconstruction import reconstruct
-from usvc.sfm.tracks import from_reconstruction, sfm_stats, write_tracks
+from usvc.sfm.tracks_file import from_reconstruction, sfm_stats, write_tracks
 
 log = logging.getLogger("usvc")
 

@@ -16,7 +16,7 @@ from usvc.core.errors import UsvcError
 from usvc.model.head import Regressor
 from usvc.model.map_file import save_map
 from usvc.model.options import ModelOptions
-from usvc.sfm.tracks import read_median_depth, read_tracks
+from usvc.sfm.tracks_file import read_median_depth, read_tracks
 from usvc.train.options import TrainOptions
 from usvc.train.trainer import train_head
 from usvc.weights import load_configured_encoder
