@@ -187,8 +187,8 @@ def test_skipped_files_are_listed_in_prepared_json(tmp_path: Path) -> None:
     argv = ["prepare", f"--config-path={REPO / 'conf'}", "scene=office", "scene.name=kit", "scene.format=images",
             f"scene.path={folder}", "scene.split=every_nth", f"data_dir={tmp_path / 'data'}",
             f"results_dir={tmp_path / 'results'}", f"hydra.run.dir={tmp_path / 'log'}"]
-    code = ("import sys, stages.prepare as stage\n"
-            "stage.prepare_scene = lambda scene, out, *a: (out.joinpath('ok').write_text('x'), "
+    code = ("import sys, stages.prepare as stage, usvc.prepare.run as step\n"
+            "step.prepare_scene = lambda scene, out, *a, **k: (out.joinpath('ok').write_text('x'), "
             "{'frames': len(scene.frames)})[1]\n"
             f"sys.argv = {argv!r}\n"
             "stage.main()\n")
