@@ -52,10 +52,6 @@ def _default(f) -> str:
     return "(a group)"
 
 
-def pipeline_stages(dvc_yaml: Path = ROOT / "dvc.yaml") -> list[str]:
-    return list(yaml.safe_load(dvc_yaml.read_text())["stages"]) if dvc_yaml.is_file() else []
-
-
 def groups_read(stage: str, dvc_yaml: Path = ROOT / "dvc.yaml") -> list[str]:
     """Config groups whose files the stage's dvc.yaml params track, in schema order."""
     body = yaml.safe_load(dvc_yaml.read_text())["stages"][stage]
