@@ -16,7 +16,7 @@ from usvc.core.errors import SceneError, UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
-from usvc.relocalize.options import MAX_ERROR_PX, REFERENCE_SHORT_SIDE, REFINE
+from usvc.relocalize.options import MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE
 
 if TYPE_CHECKING:
     from usvc.core.scene import Camera
@@ -274,7 +274,7 @@ def _localize(args: argparse.Namespace) -> int:
         raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
     refine = "none" if args.no_refine else args.refine
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
-                                precision=args.precision)
+                                prior=args.prior, precision=args.precision)
     if args.min_confidence is not None:
         if not 0.0 <= args.min_confidence <= 1.0:
             raise UsvcError(f"--min-confidence {args.min_confidence:g}: must be in [0, 1]")
@@ -392,6 +392,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="features (default): the photo's SIFT matched to the map's landmarks, guided by the "
                           "learned pose; keypoints: the paper's keypoint-guided refinement; none: the learned pose")
     loc.add_argument("--no-refine", action="store_true", help="the same as --refine none")
+    loc.add_argument("--prior", choices=PRIORS, default="learned",
+                     help="with --refine features: learned (default): the learned pose guides matching first, the "
+                          "photo is matched as SIFT + PnP matches it when that leads nowhere; none: SIFT + PnP's "
+                          "evidence alone (needs landmarks with observations)")
     loc.add_argument("--landmarks", help="the map's landmarks.h5 (default: found beside the map: landmarks.h5 in "
                                          "its folder, else ../landmarks/landmarks.h5)")
     loc.add_argument("--device", default="cpu")

@@ -8,7 +8,7 @@ import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.options import LandmarksOptions
 from usvc.sfm.tracks_file import Tracks
 
@@ -51,8 +51,27 @@ def _view_cones(tracks: Tracks, keep: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return mean[keep].astype(np.float32), widest[keep].astype(np.float32)
 
 
-def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: LandmarksOptions) -> Landmarks:
-    """The landmarks of one SfM model (points in the order of tracks.h5, filtered by `opts`)."""
+def landmark_observations(tracks: Tracks, keep: np.ndarray, image_sizes: np.ndarray) -> LandmarkObservations:
+    """Every observation of the kept points (rows `keep` of tracks), grouped by mapping image;
+    `image_sizes` (M,2) are the width and height of tracks' images, in tracks' order."""
+    point = tracks.point_of_obs()
+    row_of_point = np.full(len(tracks.xyz), -1, dtype=np.int64)
+    row_of_point[keep] = np.arange(len(keep))
+    landmark = row_of_point[point]
+    sel = np.flatnonzero(landmark >= 0)
+    sel = sel[np.lexsort((sel, np.asarray(tracks.obs_image)[sel]))]  # by image, then as in tracks: stable
+    return LandmarkObservations(landmark=landmark[sel].astype(np.int32),
+                                image=np.asarray(tracks.obs_image)[sel].astype(np.int32),
+                                uv=np.asarray(tracks.obs_uv, np.float32)[sel],
+                                descriptor=np.asarray(tracks.obs_descriptor, np.uint8)[sel],
+                                image_names=list(tracks.image_names), image_K=np.asarray(tracks.K, np.float64),
+                                image_size=np.asarray(image_sizes, np.int32).reshape(-1, 2))
+
+
+def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: LandmarksOptions,
+                    image_sizes: np.ndarray | None = None) -> Landmarks:
+    """The landmarks of one SfM model (points in the order of tracks.h5, filtered by `opts`), with
+    their observations when `image_sizes` ((M,2) width, height of tracks' mapping images) is given."""
     length = tracks.track_length
     keep = (length >= opts.min_track_length) & (tracks.error <= opts.max_error_px)
     keep_idx = np.flatnonzero(keep)
@@ -68,13 +87,16 @@ def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: Lan
     view_dir, view_angle = _view_cones(tracks, keep_idx)
     log.info("landmarks %s: %d of %d SfM points (%s descriptors)", scene, len(keep_idx), len(tracks.xyz),
              opts.descriptor)
+    observations = None if image_sizes is None else landmark_observations(tracks, keep_idx, image_sizes)
     return Landmarks(scene=scene, xyz=tracks.xyz[keep_idx].astype(np.float64), descriptor=encode_descriptors(desc),
                      view_dir=view_dir, view_angle_deg=view_angle,
-                     track_length=length[keep_idx].astype(np.int32), image_short_side=int(image_short_side))
+                     track_length=length[keep_idx].astype(np.int32), image_short_side=int(image_short_side),
+                     observations=observations)
 
 
 def landmark_stats(landmarks: Landmarks, tracks: Tracks) -> dict:
     return {"landmarks": len(landmarks), "points": int(len(tracks.xyz)),
             "mean_track_length": float(landmarks.track_length.mean()),
             "median_view_angle_deg": float(np.median(landmarks.view_angle_deg)),
-            "image_short_side": landmarks.image_short_side}
+            "image_short_side": landmarks.image_short_side,
+            "observations": 0 if landmarks.observations is None else len(landmarks.observations.landmark)}

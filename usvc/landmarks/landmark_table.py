@@ -7,6 +7,12 @@ mean direction from the point to the cameras that saw it, and the widest angle b
 direction and any of them. At query time a landmark is a candidate only when the camera sees it
 from within that cone (plus a margin): a point on the far side of an object is not matched.
 
+Each landmark also keeps its track: every mapping image that observed it, with that observation's
+keypoint and descriptor, and the mapping images' cameras (`LandmarkObservations`). They are the
+evidence SIFT + PnP uses (the query's keypoints matched to each mapping image's keypoints, the
+matches verified per pair, lifted to the points through the tracks): the relocalizer falls back
+on them when the learned pose does not lead to the photo's features.
+
 Descriptors are COLMAP's SIFT (L1-root normalised) in its uint8 encoding (512 x value, clipped
 at 255); `unit_descriptors` turns them into unit vectors for matching.
 """
@@ -23,6 +29,46 @@ DESCRIPTOR_SCALE = 512.0  # COLMAP's uint8 SIFT encoding
 
 
 @dataclass
+class LandmarkObservations:
+    """Every observation of the landmarks in the mapping images, grouped by image (rows of one image
+    are contiguous, images in order), and the mapping images' pinhole cameras."""
+
+    landmark: np.ndarray  # (T,) int32 row of the observed landmark
+    image: np.ndarray  # (T,) int32 row of image_names: the mapping image of the observation
+    uv: np.ndarray  # (T,2) float32 keypoint, COLMAP pixel convention, in that image
+    descriptor: np.ndarray  # (T,128) uint8 SIFT descriptor of the keypoint (COLMAP's encoding)
+    image_names: list[str]  # (M,) mapping image names
+    image_K: np.ndarray  # (M,3,3) float64 intrinsics of each mapping image (pinhole, prepared size)
+    image_size: np.ndarray  # (M,2) int32 width, height of each mapping image
+
+    def problems(self, n_landmarks: int) -> list[str]:
+        t, m = len(self.landmark), len(self.image_names)
+        shapes = {"obs landmark": (self.landmark.shape, (t,)), "obs image": (self.image.shape, (t,)),
+                  "obs uv": (self.uv.shape, (t, 2)), "obs descriptor": (self.descriptor.shape, (t, 128)),
+                  "image K": (self.image_K.shape, (m, 3, 3)), "image size": (self.image_size.shape, (m, 2))}
+        out = [f"{k} {got}, expected {want}" for k, (got, want) in shapes.items() if got != want]
+        if out:
+            return out
+        if t and (self.landmark.min() < 0 or self.landmark.max() >= n_landmarks):
+            out.append(f"an observation names a landmark outside 0..{n_landmarks - 1}")
+        if t and (self.image.min() < 0 or self.image.max() >= m):
+            out.append(f"an observation names an image outside 0..{m - 1}")
+        if t > 1 and np.any(np.diff(self.image) < 0):
+            out.append("observations are not grouped by image")
+        if not (np.isfinite(self.uv).all() and np.isfinite(self.image_K).all()):
+            out.append("observations or cameras are not finite")
+        return out
+
+    def image_slices(self) -> list[tuple[int, int, int]]:
+        """(image row, first observation, end) of every image with observations, in image order."""
+        if len(self.image) == 0:
+            return []
+        starts = np.flatnonzero(np.r_[True, self.image[1:] != self.image[:-1]])
+        ends = np.r_[starts[1:], len(self.image)]
+        return [(int(self.image[a]), int(a), int(b)) for a, b in zip(starts, ends)]
+
+
+@dataclass
 class Landmarks:
     scene: str  # the scene whose SfM model they come from
     xyz: np.ndarray  # (N,3) float64 world positions (the SfM points, bit for bit)
@@ -31,6 +77,7 @@ class Landmarks:
     view_angle_deg: np.ndarray  # (N,) float32 widest angle between view_dir and a camera that saw it
     track_length: np.ndarray  # (N,) int32 observations of the point
     image_short_side: int  # median short side (px) of the mapping images the descriptors come from
+    observations: LandmarkObservations | None = None  # the tracks (absent in files of format version 1)
 
     def __post_init__(self) -> None:
         n = len(self.xyz)
@@ -43,6 +90,10 @@ class Landmarks:
         if not (np.isfinite(self.xyz).all() and np.isfinite(self.view_dir).all()
                 and np.isfinite(self.view_angle_deg).all()):
             raise UsvcError(f"landmarks of scene {self.scene!r} have non-finite positions or directions")
+        if self.observations is not None:
+            bad = self.observations.problems(n)
+            if bad:
+                raise UsvcError(f"landmarks of scene {self.scene!r} have inconsistent observations: {'; '.join(bad)}")
         if self.image_short_side <= 0:
             raise UsvcError(f"landmarks of scene {self.scene!r}: image_short_side must be positive, "
                             f"got {self.image_short_side}")

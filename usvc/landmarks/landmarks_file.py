@@ -9,14 +9,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
-from usvc.landmarks.landmark_table import Landmarks
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
 
-LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 1
+# Version 2 adds the observations (obs/*, images/*); version 1 files are still read, without them.
+LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 2
+READABLE_VERSIONS = (1, 2)
 
 LANDMARKS_SCHEMA: dict[str, Field] = {
     "xyz": Field("scene units", "position of the landmark: the triangulated SfM point (as in sfm/tracks.h5)", "world"),
@@ -25,6 +28,14 @@ LANDMARKS_SCHEMA: dict[str, Field] = {
     "view_dir": Field("1", "unit mean direction from the point to the mapping cameras that saw it", "world"),
     "view_angle_deg": Field("deg", "widest angle between view_dir and the direction to a camera that saw it"),
     "track_length": Field("1", "mapping images that observed the point"),
+    "obs/landmark": Field("1", "row of the landmark this observation is of; rows are grouped by obs/image"),
+    "obs/image": Field("1", "mapping image of the observation: row of images/*"),
+    "obs/uv": Field("px", "the observation's SIFT keypoint; pixel centres at integer+0.5 (COLMAP), x right, y down",
+                    "image"),
+    "obs/descriptor": Field("1", "the observation's own SIFT descriptor (COLMAP's, uint8 encoding)"),
+    "images/name": Field("1", "mapping image name, relative to prepared/images"),
+    "images/K": Field("px", "intrinsic matrix of the prepared (pinhole) mapping image", "camera->image"),
+    "images/size": Field("px", "width, height of the prepared mapping image"),
 }
 
 
@@ -36,6 +47,25 @@ def write_landmarks(path: Path, landmarks: Landmarks) -> None:
         h5.create_dataset("descriptor", data=landmarks.descriptor, compression="gzip")
         h5["view_dir"], h5["view_angle_deg"] = landmarks.view_dir, landmarks.view_angle_deg
         h5["track_length"] = landmarks.track_length
+        obs = landmarks.observations
+        if obs is not None:
+            h5["obs/landmark"], h5["obs/image"], h5["obs/uv"] = obs.landmark, obs.image, obs.uv
+            h5.create_dataset("obs/descriptor", data=obs.descriptor, compression="gzip")
+            h5.create_dataset("images/name", data=np.array(obs.image_names, dtype=object),
+                              dtype=h5py.string_dtype())
+            h5["images/K"], h5["images/size"] = obs.image_K, obs.image_size
+
+
+def _observations(h5: h5py.File) -> LandmarkObservations | None:
+    if "obs" not in h5:
+        return None
+    names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["images/name"][()]]
+    return LandmarkObservations(landmark=np.asarray(h5["obs/landmark"][()], np.int32),
+                                image=np.asarray(h5["obs/image"][()], np.int32),
+                                uv=np.asarray(h5["obs/uv"][()], np.float32).reshape(-1, 2),
+                                descriptor=np.asarray(h5["obs/descriptor"][()], np.uint8).reshape(-1, 128),
+                                image_names=names, image_K=np.asarray(h5["images/K"][()], np.float64),
+                                image_size=np.asarray(h5["images/size"][()], np.int32))
 
 
 def read_landmarks(path: Path | str) -> Landmarks:
@@ -43,9 +73,9 @@ def read_landmarks(path: Path | str) -> Landmarks:
     with read_h5(path, "landmarks") as h5:
         if h5.attrs.get("format") != LANDMARKS_FORMAT:
             raise UsvcError(f"{path}: not a usvc landmarks file")
-        if h5.attrs.get("version") != LANDMARKS_VERSION:
+        if h5.attrs.get("version") not in READABLE_VERSIONS:
             raise UsvcError(f"{path}: landmarks format version {h5.attrs.get('version')!r}, "
-                            f"this code reads {LANDMARKS_VERSION}")
+                            f"this code reads {', '.join(map(str, READABLE_VERSIONS))}")
         scene = h5.attrs.get("scene")
         scene = scene.decode() if isinstance(scene, bytes) else str(scene)
         try:
@@ -54,7 +84,8 @@ def read_landmarks(path: Path | str) -> Landmarks:
                              view_dir=np.asarray(h5["view_dir"][()], np.float32),
                              view_angle_deg=np.asarray(h5["view_angle_deg"][()], np.float32),
                              track_length=np.asarray(h5["track_length"][()], np.int32),
-                             image_short_side=int(h5.attrs.get("image_short_side", 0)))
+                             image_short_side=int(h5.attrs.get("image_short_side", 0)),
+                             observations=_observations(h5))
         except UsvcError as exc:
             raise UsvcError(f"{path}: {exc}") from None
 

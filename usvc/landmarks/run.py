@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from usvc.core.artifact_names import LANDMARKS_H5
+from usvc.core.errors import UsvcError
 from usvc.core.scene_file import read_scene_h5
 from usvc.landmarks.build import build_landmarks, landmark_stats
 from usvc.landmarks.landmarks_file import write_landmarks
@@ -30,9 +31,15 @@ def run(inputs: Inputs, out: Path, options: LandmarksOptions, *, scene: str) -> 
     tracks = read_tracks(inputs.tracks)
     mapping = read_scene_h5(inputs.scene).split("train")
     short_side = int(np.median([min(f.camera.width, f.camera.height) for f in mapping]))
-    landmarks = build_landmarks(tracks, scene, short_side, options)
+    size = {f.name: (f.camera.width, f.camera.height) for f in mapping}
+    missing = [n for n in tracks.image_names if n not in size]
+    if missing:
+        raise UsvcError(f"{inputs.tracks}: mapping image {missing[0]!r} is not in {inputs.scene}: "
+                        "the SfM model is of another scene (rerun the sfm stage)")
+    landmarks = build_landmarks(tracks, scene, short_side, options, np.array([size[n] for n in tracks.image_names]))
     write_landmarks(out / LANDMARKS_H5, landmarks)
     megabytes = (out / LANDMARKS_H5).stat().st_size / 2**20
     stats = {**landmark_stats(landmarks, tracks), "megabytes": megabytes}
-    log.info("landmarks: %d landmarks, %.2f MB", stats["landmarks"], megabytes)
+    log.info("landmarks: %d landmarks, %d observations, %.2f MB", stats["landmarks"], stats["observations"],
+             megabytes)
     return stats

@@ -14,7 +14,7 @@ from usvc.core.atomic import atomic_file
 # changes only when the result does, and a rerun on the same kind of machine leaves the lock as
 # it was.
 TIMING_KEYS = frozenset({"seconds", "peak_memory_mb", "extract_s", "match_s", "reconstruct_s", "train_seconds",
-                         "samples_per_second", "fit_seconds", "ms_per_query", "ms_network", "ms_pnp", "ms_refine",
+                         "samples_per_second", "fit_seconds", "ms_per_query", "ms_network", "ms_pnp", "ms_refine", "ms_fallback",
                          "query_seconds"})
 
 

@@ -1,6 +1,8 @@
 """Refinement by features: the learned pose guides matching of the query's SIFT keypoints to the
 SfM model's own landmarks, and LO-RANSAC PnP on those matches gives the exact pose.
 
+Hypotheses, in order of cost (`Relocalizer` decides which run; the one with the most support wins):
+
 Guided pass: the landmarks the prior pose sees (in front, inside the image, and looked at from
 within the cone of directions they were mapped from) are projected; each is compared only with
 query keypoints within a radius of its projection (nearest descriptor, Lowe's ratio test against
@@ -8,13 +10,15 @@ the second nearest there, one landmark per keypoint), and pycolmap's LO-RANSAC a
 with non-linear refinement re-estimates the pose. The radius then shrinks and the pass repeats
 from the new pose. When the prior is missing or too far off for the first pass, the query's
 keypoints are matched against every landmark (2D-to-3D, ratio test, mutual), PnP gives a pose,
-and the remaining guided passes tighten it.
+and the remaining guided passes tighten it; and the query is matched as SIFT + PnP matches it
+(`verified_matching`: every mapping image's observed keypoints, verified per pair, lifted through
+the tracks), PnP, then the same guided passes.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -24,9 +28,14 @@ from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.pnp import project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.verified_matching import VerifiedMatches
 
 log = logging.getLogger(__name__)
 
+# SIFT + PnP's inlier threshold for a query's pose, px at the mapping images' size: the value with
+# which benchmarks/baseline_sift.py registers queries (usvc.sfm.posing.QUERY_MAX_ERROR_PX; a test
+# keeps the two equal without the query step importing the SfM step)
+VERIFIED_MAX_ERROR_PX = 4.0
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
 _DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product
@@ -46,7 +55,9 @@ class FeatureMatchOptions:
 @dataclass
 class FeatureResult:
     """What refinement by features found. `path` is "guided" (from the learned pose), "global"
-    (matching against every landmark, then guided passes) or "" (no pose)."""
+    (matching against every landmark's descriptor, then guided passes), "verified" (SIFT + PnP's
+    evidence: matches to each mapping image, verified per pair, lifted through the tracks; then
+    guided passes) or "" (no pose)."""
 
     R: np.ndarray | None
     t: np.ndarray | None
@@ -57,6 +68,9 @@ class FeatureResult:
     match_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the last accepted pass's matches
     match_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     why: str = ""  # why no pose, when there is none
+    tried: list[dict] = field(default_factory=list)  # per hypothesis tried: its path and its support
+    verified: dict | None = None  # what SIFT + PnP's matching took, when it ran (VerifiedMatches.record)
+    verified_seconds: float | None = None  # its time
 
     @property
     def success(self) -> bool:
@@ -178,48 +192,128 @@ def _pnp(uv: np.ndarray, xyz: np.ndarray, camera: Camera, opts: FeatureMatchOpti
     return res if res.success else None
 
 
-def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
-                       R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions,
-                       seed: int = 0) -> FeatureResult:
-    """The pose of the query whose features are `feats` (pixels of `camera`'s image), starting from
-    the learned pose (R0, t0) when there is one; `lm_desc` are the landmarks' unit descriptors."""
-    out = FeatureResult(None, None)
-    R, t = R0, t0
-    start_pass = 0
-    if R is not None and t is not None:
-        idx, uv = visible_landmarks(landmarks, camera, R, t, opts.view_margin_deg)
-        li, ki = guided_matches(uv, lm_desc[idx], feats, opts.radii_px[0], opts.ratio)
-        res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
-        out.passes.append({"kind": "guided", "radius_px": opts.radii_px[0], "candidates": int(len(idx)),
-                           "matches": int(len(li)), "inliers": 0 if res is None else res.num_inliers})
-        if res is not None:
-            out.path, start_pass = "guided", 1
-            R, t = res.R, res.t
-            out.inliers, out.matches = res.num_inliers, len(li)
-            out.match_uv, out.match_xyz = feats.uv[ki], landmarks.xyz[idx[li]]
-    if not out.path:
-        li, ki = global_matches(lm_desc, feats, opts.ratio)
-        res = _pnp(feats.uv[ki], landmarks.xyz[li], camera, opts, seed)
-        out.passes.append({"kind": "global", "radius_px": None, "candidates": int(len(landmarks)),
-                           "matches": int(len(li)), "inliers": 0 if res is None else res.num_inliers})
-        if res is None:
-            out.why = (f"features: {len(li)} matches to landmarks, no pose with {opts.min_inliers} inliers "
-                       f"within {opts.max_error_px:g} px")
-            return out
-        out.path, start_pass = "global", 1
-        R, t = res.R, res.t
-        out.inliers, out.matches = res.num_inliers, len(li)
-        out.match_uv, out.match_xyz = feats.uv[ki], landmarks.xyz[li]
-    for radius in opts.radii_px[start_pass:]:
-        idx, uv = visible_landmarks(landmarks, camera, R, t, opts.view_margin_deg)
-        li, ki = guided_matches(uv, lm_desc[idx], feats, radius, opts.ratio)
-        res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
-        out.passes.append({"kind": "guided", "radius_px": radius, "candidates": int(len(idx)),
-                           "matches": int(len(li)), "inliers": 0 if res is None else res.num_inliers})
+def _guided_pass(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R: np.ndarray,
+                 t: np.ndarray, radius: float, opts: FeatureMatchOptions, seed: int):
+    """One guided pass from (R, t): (PnP result or None, the pass's record, matched uv, matched xyz)."""
+    idx, uv = visible_landmarks(landmarks, camera, R, t, opts.view_margin_deg)
+    li, ki = guided_matches(uv, lm_desc[idx], feats, radius, opts.ratio)
+    res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
+    record = {"kind": "guided", "radius_px": radius, "candidates": int(len(idx)), "matches": int(len(li)),
+              "inliers": 0 if res is None else res.num_inliers}
+    return res, record, feats.uv[ki], landmarks.xyz[idx[li]]
+
+
+def _accept(out: FeatureResult, res, uv: np.ndarray, xyz: np.ndarray, inliers: int | None = None) -> None:
+    out.R, out.t = np.asarray(res.R, np.float64).copy(), np.asarray(res.t, np.float64).copy()
+    out.inliers, out.matches = res.num_inliers if inliers is None else inliers, len(uv)
+    out.match_uv, out.match_xyz = uv, xyz
+
+
+def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
+             radii: tuple[float, ...], opts: FeatureMatchOptions, seed: int) -> None:
+    """Guided passes from `out`'s pose at the given radii, while they keep most of the support."""
+    for radius in radii:
+        assert out.R is not None and out.t is not None
+        res, record, uv, xyz = _guided_pass(landmarks, lm_desc, feats, camera, out.R, out.t, radius, opts, seed)
+        out.passes.append(record)
         if res is None or res.num_inliers < out.inliers // 2:
             break  # keep the last pose: a tighter radius that loses most support is not better
-        R, t = res.R, res.t
-        out.inliers, out.matches = res.num_inliers, len(li)
-        out.match_uv, out.match_xyz = feats.uv[ki], landmarks.xyz[idx[li]]
-    out.R, out.t = np.asarray(R, np.float64).copy(), np.asarray(t, np.float64).copy()
+        _accept(out, res, uv, xyz)
+
+
+def from_prior(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R0: np.ndarray,
+               t0: np.ndarray, opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
+    """Guided passes from the learned pose (R0, t0): the first at the widest radius, then tighter."""
+    out = FeatureResult(None, None)
+    res, record, uv, xyz = _guided_pass(landmarks, lm_desc, feats, camera, R0, t0, opts.radii_px[0], opts, seed)
+    out.passes.append(record)
+    if res is None:
+        out.why = (f"features: the learned pose's guided pass found {record['matches']} matches, no pose with "
+                   f"{opts.min_inliers} inliers")
+        return out
+    out.path = "guided"
+    _accept(out, res, uv, xyz)
+    _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
     return out
+
+
+def _from_correspondences(path: str, uv: np.ndarray, xyz: np.ndarray, record: dict, landmarks: Landmarks,
+                          lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
+                          seed: int, keypoint: np.ndarray | None = None, tighten: bool = True) -> FeatureResult:
+    """PnP on unguided correspondences (`path` names them), then guided passes to tighten (unless
+    not `tighten`). Support counts query keypoints: with `keypoint` (the keypoint row of each
+    correspondence, where one keypoint may give several), the distinct keypoints among the inliers,
+    as a guided pass counts."""
+    out = FeatureResult(None, None)
+    res = _pnp(uv, xyz, camera, opts, seed)
+    support = None if res is None or keypoint is None else int(len(np.unique(keypoint[res.inlier_mask])))
+    if support is not None and support < opts.min_inliers:
+        res = None
+    out.passes.append({**record, "inliers": 0 if res is None else (support or res.num_inliers)})
+    if res is None:
+        out.why = (f"features ({path}): {len(uv)} correspondences, no pose with {opts.min_inliers} inliers "
+                   f"within {opts.max_error_px:g} px")
+        return out
+    out.path = path
+    _accept(out, res, uv, xyz, support)
+    if not tighten:
+        return out
+    _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
+    return out
+
+
+def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
+                opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
+    """The query's keypoints matched against every landmark's one descriptor, PnP, then tightened."""
+    li, ki = global_matches(lm_desc, feats, opts.ratio)
+    record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
+    return _from_correspondences("global", feats.uv[ki], landmarks.xyz[li], record, landmarks, lm_desc, feats,
+                                 camera, opts, seed)
+
+
+def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
+                  verified: VerifiedMatches, opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
+    """SIFT + PnP's evidence (`verified_matches`) and its PnP: LO-RANSAC with refinement at
+    VERIFIED_MAX_ERROR_PX (at the mapping images' size), as SIFT + PnP registers a query. Not
+    tightened by guided passes: a keypoint matched in several mapping images counts once per image
+    here, a weighting the one descriptor per landmark of a guided pass loses (on mini the guided
+    passes moved the median answer from 0.056 to 0.066 cm, SIFT + PnP's being 0.049)."""
+    record = {"kind": "verified", "radius_px": None, "candidates": int(verified.images),
+              "matches": int(len(verified)), "verified_pairs": int(verified.verified_pairs)}
+    scale = min(camera.width, camera.height) / landmarks.image_short_side
+    strict = replace(opts, max_error_px=VERIFIED_MAX_ERROR_PX * scale)
+    return _from_correspondences("verified", verified.uv, verified.xyz, record, landmarks, lm_desc, feats, camera,
+                                 strict, seed, verified.keypoint, tighten=False)
+
+
+def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
+    """The hypothesis with the most PnP inliers after tightening (the first, the cheapest, on ties),
+    carrying every hypothesis's passes and support in its record; or the last failure."""
+    found = [h for h in hypotheses if h.success]
+    best = max(found, key=lambda h: h.inliers) if found else FeatureResult(None, None)
+    best = FeatureResult(best.R, best.t, best.inliers, best.matches, best.path, [], best.match_uv, best.match_xyz,
+                         best.why)
+    for h in hypotheses:
+        best.passes.extend(h.passes)
+    best.tried = [{"path": h.path or h.passes[0]["kind"], "inliers": h.inliers if h.success else 0}
+                  for h in hypotheses if h.passes]
+    if not found:
+        best.why = "; ".join(h.why for h in hypotheses if h.why) or "features: no match to the landmarks"
+    return best
+
+
+def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
+                       R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
+                       verified: VerifiedMatches | None = None) -> FeatureResult:
+    """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
+    from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior),
+    matching against every landmark and, given `verified` (SIFT + PnP's evidence), PnP on those too;
+    the hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors."""
+    hypotheses = []
+    if R0 is not None and t0 is not None:
+        hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
+    if not hypotheses or not hypotheses[0].success:
+        hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed))
+        if verified is not None:
+            hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, verified, opts, seed))
+    return best_hypothesis(hypotheses)

@@ -13,6 +13,7 @@ from usvc.core.precision import PRECISIONS
 
 BACKENDS = ("pycolmap", "opencv")
 REFINE = ("features", "keypoints", "none")
+PRIORS = ("learned", "none")  # what guides refinement by features first
 EXTRACTORS = ("opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
@@ -41,6 +42,7 @@ class RelocalizeOptions:
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)
     focal_tolerance: float = 0.25  # given focal length vs the one the map implies: a larger relative gap fails; 0 = no check
+    prior: str = "learned"  # refine=features: learned: the learned pose guides matching first, SIFT + PnP's evidence when it leads nowhere | none: no learned pose, SIFT + PnP's evidence alone (the baseline's answer, tightened by guided passes)
     refine: str = "features"  # features: the query's SIFT matched to the map's landmarks, guided by the learned pose | keypoints: the paper's keypoint-guided refinement (3.2.2) | none; the method group sets it
     refine_radius_px: float = 8.0  # cells within this radius (working-image px) of a projected keypoint form the mask
     refine_max_iterations: int = 5  # T_max
@@ -57,7 +59,7 @@ class RelocalizeOptions:
 
     def problems(self) -> list[str]:
         out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
-        out += one_of(self, "refine", REFINE) + one_of(self, "features_extractor", EXTRACTORS)
+        out += one_of(self, "refine", REFINE) + one_of(self, "prior", PRIORS) + one_of(self, "features_extractor", EXTRACTORS)
         out += positive(self, "max_error_px", "min_inliers") + refine_problems(self, "refine_")
         out += positive(self, "features_max_keypoints", "features_max_error_px", "features_view_margin_deg")
         for name in ("max_error_px", "features_max_error_px"):

@@ -44,9 +44,12 @@ class PoseEstimate:
     focal_estimated: bool = False
     rejected: str = ""  # why a pose RANSAC found is not trusted (low confidence, or intrinsics the map contradicts)
     refine_method: str = "none"  # the refinement that ran: features | keypoints | none
-    refine_path: str = ""  # which evidence gave the answer: guided | global (features), keypoints, dense
+    refine_path: str = ""  # which evidence gave the answer: guided | global | verified (features), keypoints, dense
     feature_inliers: int = 0  # PnP inliers of the feature pose (refine=features), 0 when it found none
     feature_passes: list = field(default_factory=list)  # per matching pass: kind, radius_px, candidates, matches, inliers
+    feature_hypotheses: list = field(default_factory=list)  # per hypothesis tried: path, inliers after tightening
+    verified: dict | None = None  # SIFT + PnP's matching, when it ran: images, pairs, correspondences, seconds
+    prior: str = "learned"  # relocalize.prior: learned | none
     warnings: list = field(default_factory=list)  # doubts about the input that did not stop it (principal point...)
     pose_found: bool = True  # False when no pose was found at all (confidence 0 whatever `rejected` says)
 
@@ -76,7 +79,15 @@ class PoseEstimate:
                                  if np.isfinite(self.initial_R).all() else None,
                                  "initial_t": [float(v) for v in self.initial_t] if np.isfinite(self.initial_t).all()
                                  else None,
-                                 "passes": self.feature_passes}
+                                 "passes": self.feature_passes, "hypotheses": self.feature_hypotheses,
+                                 "prior": self.prior}
+            if self.verified is not None:
+                out["refinement"]["verified_matching"] = self.verified
+        elif self.feature_passes:  # refused or not found: the evidence that was weighed
+            out["evidence"] = {"passes": self.feature_passes, "hypotheses": self.feature_hypotheses,
+                               "prior": self.prior}
+            if self.verified is not None:
+                out["evidence"]["verified_matching"] = self.verified
         if self.rejected:
             out["rejected"] = self.rejected
         if self.warnings:

@@ -30,6 +30,11 @@ def relocalize_frames(relocalizer: Relocalizer, frames: list[Frame]) -> list[Pos
     return results
 
 
+def _fallback_summary(results: list[PoseEstimate]) -> dict[str, Any]:
+    ran = [r.seconds["fallback"] for r in results if "fallback" in r.seconds]
+    return {"fallback_runs": len(ran), "ms_fallback": float(np.mean(ran) * 1000) if ran else 0.0}
+
+
 def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate]) -> dict[str, Any]:
     """poses.txt (successful queries only), queries.h5 and queries.json; returns summary figures."""
     ok = [i for i, r in enumerate(results) if r.success]
@@ -58,5 +63,7 @@ def write_results(out_dir: Path, frames: list[Frame], results: list[PoseEstimate
             "answer_paths": {p: sum(r.refine_path == p for r in refined)
                              for p in sorted({r.refine_path for r in refined})},
             "median_feature_inliers": float(np.median([r.feature_inliers for r in refined])) if refined else 0.0,
+            # SIFT + PnP's matching (the fallback): how often it ran, and what it cost where it ran
+            **_fallback_summary(results),
             **refinement_summary([r.refine_kept for r in refined], [r.refine_iterations for r in refined])}
 

@@ -32,8 +32,11 @@ from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
     FeatureResult,
+    best_hypothesis,
+    from_global,
+    from_prior,
+    from_verified,
     global_matches,
-    refine_by_features,
 )
 from usvc.relocalize.pnp import (
     PnPResult,
@@ -54,6 +57,7 @@ from usvc.relocalize.camera_checks import (
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.refinement import RefineOptions, refine_pose
+from usvc.relocalize.verified_matching import VerifiedMatches, observation_descriptors, verified_matches
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
 log = logging.getLogger(__name__)
@@ -66,7 +70,8 @@ MIN_CONTRAST = 1.0 / 255.0
 CAMERA_FOV = "crop"
 FOCAL_UNOBSERVABLE = "unobservable"
 # The learned pose "describes" the photo when it is this close to the feature pose.
-AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5  # a distorted query is undistorted as prepare undistorts mapping images
+AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5
+FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features  # a distorted query is undistorted as prepare undistorts mapping images
 
 
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
@@ -146,8 +151,15 @@ class Relocalizer:
             log.warning("map %s has no 3D keypoints: keypoint-guided refinement is off", self.map_path)
         self.landmarks: Landmarks | None = None
         self.landmarks_path: Path | None = None
+        self.prior = self.options.prior == "learned"  # prior=none: the learned pose guides nothing
+        if not self.prior and self.options.refine != "features":
+            raise UsvcError(f"relocalize.prior=none needs relocalize.refine=features (got {self.options.refine!r}): "
+                            "without the learned pose only the photo's features can give a pose")
         if self.options.refine == "features":
             self._load_landmarks(landmarks)
+        if not self.prior and self.landmarks is None:
+            raise UsvcError(f"relocalize.prior=none needs the map's landmarks, and map {self.map_path} has none "
+                            "beside it (landmarks.h5; --landmarks names it)")
 
     def _load_landmarks(self, landmarks: str | Path | None) -> None:
         """Read and check the map's landmarks; a map without them localizes without refinement."""
@@ -164,6 +176,11 @@ class Relocalizer:
             raise UsvcError(f"{path} are not the landmarks of map {self.map_path}: {why}")
         self.landmarks, self.landmarks_path = found, path
         self._landmark_desc = unit_descriptors(found.descriptor)
+        self._observation_desc = observation_descriptors(found.observations) if found.observations is not None \
+            else None
+        if not self.prior and found.observations is None:
+            raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
+                            "(format version 1): rebuild them with the landmarks stage")
 
     def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
         """The image at the map's working short side, as its head was trained, and the resize factor."""
@@ -249,7 +266,7 @@ class Relocalizer:
         threshold = self.options.max_error_px * min(gray.shape) / REFERENCE_SHORT_SIDE
         pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
         no_focal = ""  # why the map's coordinates gave no focal length, when the photo has none
-        if camera is None:
+        if camera is None and self.prior:
             camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
                                     self.seed)
             if camera is None:
@@ -273,21 +290,19 @@ class Relocalizer:
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
             return PoseEstimate(False, nan_R(), nan_t(), 0, hc * wc, seconds, focal_estimated=True,
                                 rejected=no_focal, warnings=warnings, pose_found=False)
-        if camera is not None:
+        if camera is not None and self.prior:
             result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                                seed=self.seed, min_inliers=self.options.min_inliers,
                                backend=self.options.backend)
-        else:  # no focal length from the map: features may still find the pose, with an assumed one
+        else:  # no learned pose (prior=none, or no focal length from the map): features may still find one
             result = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
-        rejected = ""
-        if result.success and intrinsics is not None and self.options.focal_tolerance > 0 and self.landmarks is None:
-            rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
-        if result.success and intrinsics is None and not rejected:  # a square-pixel focal estimated: stretched?
-            rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
         t3 = time.perf_counter()
+        # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
+        # before the features have had their say; the checks below judge the final answer with the
+        # evidence that produced it.
         R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
-        path, feature = "dense", None
-        if result.success and self.refine and not rejected:
+        path, feature, rejected = "dense", None, ""
+        if result.success and self.refine:
             assert self.keypoints_xyz is not None
             ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
                               max_error_px=threshold, median_depth=self.median_depth,
@@ -300,38 +315,47 @@ class Relocalizer:
             if full_camera is None:  # COLMAP's prior for a photo without calibration
                 full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
                 given = full_camera
-            feature, feature_rejected, full_camera = self._features(full_gray, full_camera, result,
+            feature, feature_rejected, full_camera, feature_evidence = self._features(full_gray, full_camera, result,
                                                                     intrinsics is not None, intrinsics_source)
             if intrinsics is None and feature.success and not feature_rejected:
                 given = full_camera  # the focal length the features estimated with the pose
             if feature_rejected == FOCAL_UNOBSERVABLE:
-                # The features cannot tell: the map's coordinates decide, at a wider tolerance since
-                # they are coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails),
-                # and only where they describe this photo (their pose agrees with the features'; a
-                # photo the map cannot read, e.g. turned sideways, gives them no say).
-                wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
-                agree = result.success and feature.success and \
-                    poses_agree(result.R, result.t, feature.R, feature.t, self.median_depth)
-                feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide,
-                                                            intrinsics_source) if agree else ""
+                # the matches to every landmark cannot tell the focal length: the map's coordinates
+                # decide where they read this photo, else SIFT + PnP's verified matches
+                if self._map_reads(result, feature, hc * wc):
+                    wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
+                    feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide,
+                                                                intrinsics_source)
+                else:
+                    feature_rejected = self._feature_focal_verdict(feature_evidence, intrinsics_source,
+                                                                   verified=True)
+                    feature.verified = feature_evidence.verified_record()
+                    feature.verified_seconds = feature_evidence.verified_seconds()
+                    if feature_rejected == FOCAL_UNOBSERVABLE:
+                        feature_rejected = ""  # nothing contradicts the given focal length
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
                     inliers = int(reprojection_inliers(camera, pixels, coords.reshape(-1, 3), R, t, threshold).sum())
             elif feature_rejected:
                 rejected = feature_rejected
-            elif result.success and intrinsics is not None and self.options.focal_tolerance > 0:
-                # no feature pose: the dense answer stands only if the map agrees with the intrinsics
+        by_features = path in FEATURE_PATHS
+        if result.success and not by_features and not rejected:
+            # the learned pose is the answer (no landmarks, or no feature pose): its own evidence judges it
+            if intrinsics is not None and self.options.focal_tolerance > 0:
                 rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
+            elif intrinsics is None:  # a square-pixel focal estimated: stretched?
+                rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
+            if not rejected and inliers < self.options.min_confidence * hc * wc:
+                # a pose, but one that too few cells agree with: wrong answers look like this
+                rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
         t4 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
                    "total": t4 - t0}
-        by_features = path in ("guided", "global")
-        if result.success and not rejected and not by_features and inliers < self.options.min_confidence * hc * wc:
-            # a pose, but one that too few cells agree with: wrong answers look like this
-            rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
+        if feature is not None and feature.verified_seconds is not None:  # SIFT + PnP's matching, part of refine
+            seconds["fallback"] = feature.verified_seconds
         success = (result.success or by_features) and not rejected
-        pose_found = bool(result.success or by_features)
+        pose_found = bool(result.success or (feature is not None and feature.success))
         if not success:
             R, t = nan_R(), nan_t()
             if not rejected:  # every failure says why
@@ -345,7 +369,19 @@ class Relocalizer:
                             else "none", refine_path=path if success else "",
                             feature_inliers=feature.inliers if feature is not None else 0,
                             feature_passes=feature.passes if feature is not None else [],
-                            warnings=warnings, pose_found=pose_found)
+                            feature_hypotheses=feature.tried if feature is not None else [],
+                            verified=feature.verified if feature is not None else None,
+                            warnings=warnings, pose_found=pose_found, prior=self.options.prior)
+
+    def _map_reads(self, dense: PnPResult, feature: FeatureResult, cells: int) -> bool:
+        """Whether the map's coordinates describe this photo well enough to judge its focal length:
+        there is a learned pose, it agrees with the features' and at least min_confidence of the
+        cells agree with it (a photo the map cannot read, e.g. turned sideways, or a map that fits
+        its scene poorly gives them no say). They judge at a wider tolerance since they are coarse
+        ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails)."""
+        return bool(self.prior and dense.success and feature.success
+                    and dense.num_inliers >= self.options.min_confidence * cells
+                    and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
 
     def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
         """Why neither the map's coordinates nor the features gave a pose."""
@@ -356,12 +392,17 @@ class Relocalizer:
         return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
 
     def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool,
-                  source: str = "") -> tuple[FeatureResult, str, Camera]:
+                  source: str = "") -> tuple[FeatureResult, str, Camera, _Evidence]:
         """Refinement by features on the undistorted photo (resized to the mapping images' short
-        side when larger) from the dense pose; returns the result, why it is not trusted ("") and
-        the camera it used, at the photo's size. Without given intrinsics (`check_focal` False) the
-        focal length comes from the photo's matches to every landmark (P4Pf) where they give one,
-        and those matches also tell whether the photo was stretched to another aspect ratio."""
+        side when larger); returns the result, why it is not trusted ("") and the camera it used,
+        at the photo's size.
+
+        Hypotheses in order of cost: guided passes from the learned pose; when they find no pose
+        (or with prior=none, or no learned pose), matching against every landmark's descriptor and
+        SIFT + PnP's evidence (`verified_matches`), each tightened by guided passes; the one with
+        the most support wins. Without given intrinsics (`check_focal` False) the focal length
+        comes from P4Pf on correspondences that do not depend on it (the global matches, else the
+        verified ones) where they give one, and they also tell whether the photo was stretched."""
         assert self.landmarks is not None
         full = camera
         short = min(gray01.shape)
@@ -371,48 +412,115 @@ class Relocalizer:
         feats = extract_sift(np.clip(np.rint(gray01 * 255.0), 0, 255).astype(np.uint8),
                              self.options.features_max_keypoints, self.options.features_extractor)
         opts = feature_options(self.options, min(gray01.shape))
-        prior = (dense.R, dense.t) if dense.success else (None, None)
+        evidence = _Evidence(self, feats, opts, camera)
+        prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         if not check_focal:
-            li, ki = global_matches(self._landmark_desc, feats, opts.ratio)
-            uv, xyz = feats.uv[ki], self.landmarks.xyz[li]
-            fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
-            if fp is not None and int(fp.inlier_mask.sum()) >= opts.min_inliers:
+            for uv, xyz in evidence.unguided(camera):
+                fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+                if fp is None or int(fp.inlier_mask.sum()) < opts.min_inliers:
+                    continue
                 stretched = stretch_verdict(uv, xyz, fp.camera, fp.R, fp.t, opts.max_error_px)
                 if stretched:
-                    return FeatureResult(None, None), stretched, full
+                    return FeatureResult(None, None), stretched, full, evidence
                 camera = fp.camera
                 full = camera.scaled(full.width, full.height)
                 prior = (fp.R, fp.t) if prior[0] is None else prior
-        found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
-                                   self.seed)
+                break
+        found = self._hypotheses(feats, camera, prior, opts, evidence)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
-            return found, "", full
-        return found, self._feature_focal_verdict(feats, camera, opts, source), full
+            return found, "", full, evidence
+        return found, self._feature_focal_verdict(evidence, source), full, evidence
 
-    def _feature_focal_verdict(self, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
-                               source: str = "") -> str:
+    def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
+                    evidence: _Evidence) -> FeatureResult:
+        assert self.landmarks is not None
+        lm, desc = self.landmarks, self._landmark_desc
+        tried = []
+        if prior[0] is not None:
+            tried.append(from_prior(lm, desc, feats, camera, prior[0], prior[1], opts, self.seed))
+        if not tried or not tried[0].success:
+            if self.prior or lm.observations is None:
+                tried.append(from_global(lm, desc, feats, camera, opts, self.seed))
+            verified = evidence.verified(camera)
+            if verified is not None:
+                tried.append(from_verified(lm, desc, feats, camera, verified, opts, self.seed))
+        found = best_hypothesis(tried)
+        found.verified = evidence.verified_record()
+        found.verified_seconds = evidence.verified_seconds()
+        return found
+
+    def _feature_focal_verdict(self, evidence: _Evidence, source: str = "", verified: bool = False) -> str:
         """Why the photo's features contradict the given focal length ("" when they do not), or
-        FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on the
-        matches to every landmark, which do not depend on the given intrinsics (guided matches
-        were picked by a projection with them). A view of a shallow scene explains its matches
-        with a focal length (1 + focal_tolerance)x off about as well (the pose moves along the
-        optical axis instead): then the features cannot tell, and the map's dense coordinates
-        decide as they do without landmarks."""
+        FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on
+        correspondences that do not depend on the given intrinsics (guided matches were picked by
+        a projection with them): the matches to every landmark, or with `verified` SIFT + PnP's
+        verified matches. A view of a shallow scene explains its matches with a focal length
+        (1 + focal_tolerance)x off about as well (the pose moves along the optical axis instead):
+        then the features cannot tell."""
         assert self.landmarks is not None
         tol = self.options.focal_tolerance
-        li, ki = global_matches(self._landmark_desc, feats, opts.ratio)
-        uv, xyz = feats.uv[ki], self.landmarks.xyz[li]
-        found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
-        if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
-            return FOCAL_UNOBSERVABLE
-        f, cx, cy = found.camera.params
-        inliers = int(found.inlier_mask.sum())
-        for scale in (1.0 / (1.0 + tol), 1.0 + tol):  # can a focal length this far off explain the same inliers?
-            other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
-            if support_at(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px) \
-                    >= FOCAL_OBSERVABLE_FRACTION * inliers:
-                return FOCAL_UNOBSERVABLE
-        ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
-        if abs(np.log(ratio)) <= np.log1p(tol):
-            return ""
-        return _focal_reason("the matched features imply", ratio, tol, source)
+        camera, opts = evidence.camera, evidence.opts
+        for uv, xyz in evidence.unguided(camera, global_matches=not verified, verified=verified):
+            found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+            if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
+                continue
+            f, cx, cy = found.camera.params
+            inliers = int(found.inlier_mask.sum())
+            shallow = False
+            for scale in (1.0 / (1.0 + tol), 1.0 + tol):  # can a focal length this far off explain the same inliers?
+                other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
+                if support_at(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px) \
+                        >= FOCAL_OBSERVABLE_FRACTION * inliers:
+                    shallow = True
+                    break
+            if shallow:
+                continue
+            ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
+            if abs(np.log(ratio)) <= np.log1p(tol):
+                return ""
+            return _focal_reason("the matched features imply", ratio, tol, source)
+        return FOCAL_UNOBSERVABLE
+
+
+class _Evidence:
+    """The photo's correspondences that do not depend on its intrinsics, computed once and only
+    when asked for: the matches to every landmark's descriptor, then SIFT + PnP's verified ones."""
+
+    def __init__(self, relocalizer: Relocalizer, feats: QueryFeatures, opts: FeatureMatchOptions,
+                 camera: Camera) -> None:
+        self.reloc, self.feats, self.opts, self.camera = relocalizer, feats, opts, camera
+        self._global: tuple[np.ndarray, np.ndarray] | None = None
+        self._verified: VerifiedMatches | None = None
+
+    def global_matches(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._global is None:
+            lm = self.reloc.landmarks
+            assert lm is not None
+            li, ki = global_matches(self.reloc._landmark_desc, self.feats, self.opts.ratio)
+            self._global = self.feats.uv[ki], lm.xyz[li]
+        return self._global
+
+    def verified(self, camera: Camera) -> VerifiedMatches | None:
+        """SIFT + PnP's evidence (None for landmarks without observations)."""
+        lm = self.reloc.landmarks
+        if lm is None or lm.observations is None:
+            return None
+        if self._verified is None:
+            self._verified = verified_matches(lm, self.feats, camera, self.reloc.seed,
+                                              self.reloc._observation_desc)
+        return self._verified
+
+    def verified_record(self) -> dict | None:
+        return None if self._verified is None else self._verified.record()
+
+    def verified_seconds(self) -> float | None:
+        return None if self._verified is None else self._verified.seconds
+
+    def unguided(self, camera: Camera, global_matches: bool = True, verified: bool = True):
+        """(uv, xyz) of the global matches (unless prior=none), then of the verified ones."""
+        lm = self.reloc.landmarks
+        if global_matches and (self.reloc.prior or lm is None or lm.observations is None):
+            yield self.global_matches()
+        found = self.verified(camera) if verified else None
+        if found is not None:
+            yield found.uv, found.xyz

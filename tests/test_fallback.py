@@ -1,0 +1,240 @@
+"""When the learned pose is wrong, SIFT + PnP's evidence still localizes the photo: the query's
+keypoints matched to each mapping image's observed keypoints, verified per pair, lifted through the
+tracks (landmarks.h5's observations), LO-RANSAC PnP, then guided passes; and no check on the
+learned pose refuses a photo before the features have run.
+
+The synthetic scene of test_feature_refinement (points on a smooth surface, random SIFT-like
+descriptors), now seen by five mapping cameras around the query's, each observation with its own
+slightly perturbed descriptor, so the landmarks carry real tracks and verification sees real
+two-view geometry.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_refinement import CAM, R_TRUE, T_TRUE, backproject, coordinate_map, errors, make_map, photo
+
+from usvc.core.artifact_names import LANDMARKS_H5
+from usvc.core.errors import UsvcError
+from usvc.landmarks.build import build_landmarks
+from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
+from usvc.landmarks.options import LandmarksOptions
+from usvc.relocalize import relocalizer as relocalizer_module
+from usvc.relocalize.pnp import project_points
+from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.relocalizer import Relocalizer, RelocalizeOptions
+from usvc.relocalize.verified_matching import MIN_PAIR_INLIERS, mutual_ratio_matches, verified_matches
+from usvc.sfm.tracks_file import Tracks
+
+N_POINTS = 400
+META = {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"}
+# Five mapping cameras: the query's pose moved sideways and turned a little (a capture around it).
+MAPPING = [(Rotation.from_rotvec(r).as_matrix() @ R_TRUE, T_TRUE + np.array(d)) for r, d in [
+    ([0.0, 0.05, 0.0], [-0.25, 0.0, 0.0]), ([0.0, -0.05, 0.0], [0.25, 0.0, 0.0]),
+    ([0.04, 0.0, 0.0], [0.0, -0.2, 0.05]), ([-0.04, 0.0, 0.0], [0.0, 0.2, -0.05]),
+    ([0.0, 0.0, 0.08], [0.1, 0.1, 0.1])]]
+# A learned pose far from the truth (35 deg, a metre off): the guided pass finds nothing from it.
+WRONG = (Rotation.from_rotvec([0.0, 0.6, 0.0]).as_matrix() @ R_TRUE, T_TRUE + np.array([1.0, 0.0, 0.2]))
+
+
+def _tracks(xyz: np.ndarray, desc: np.ndarray, rng: np.random.Generator) -> Tracks:
+    """Every point's observations in the mapping cameras that see it, each with its own noisy descriptor."""
+    point, image, uv, descs = [], [], [], []
+    for m, (R, t) in enumerate(MAPPING):
+        p, depth = project_points(CAM, xyz, R, t)
+        seen = np.flatnonzero((depth > 0) & (p[:, 0] > 1) & (p[:, 0] < CAM.width - 1)
+                              & (p[:, 1] > 1) & (p[:, 1] < CAM.height - 1))
+        point.append(seen)
+        image.append(np.full(len(seen), m, np.int32))
+        uv.append(p[seen] + rng.normal(0, 0.3, (len(seen), 2)))
+        descs.append(encode_descriptors(unit_descriptors(desc[seen] + 0.02 * rng.random((len(seen), 128)))))
+    point = np.concatenate(point)
+    order = np.argsort(point, kind="stable")
+    counts = np.bincount(point, minlength=len(xyz))
+    assert counts.min() >= 2  # every point is a landmark
+    n, obs = len(xyz), len(point)
+    return Tracks(image_names=[f"m{m}.png" for m in range(len(MAPPING))], R=np.stack([r for r, _ in MAPPING]),
+                  t=np.stack([t for _, t in MAPPING]), K=np.stack([CAM.K] * len(MAPPING)), point_id=np.arange(n),
+                  xyz=xyz, rgb=np.zeros((n, 3), np.uint8), error=np.full(n, 0.5, np.float32),
+                  offset=np.r_[0, np.cumsum(counts)], obs_image=np.concatenate(image)[order],
+                  obs_uv=np.concatenate(uv)[order].astype(np.float32), obs_descriptor=np.concatenate(descs)[order],
+                  obs_error=np.full(obs, 0.5, np.float32))
+
+
+def scene(seed: int = 0) -> tuple[Landmarks, QueryFeatures]:
+    """Landmarks with observations, and the query's features (true projections plus as many distractors)."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform([4, 4], [CAM.width - 4, CAM.height - 4], (N_POINTS, 2))
+    xyz = backproject(uv, R_TRUE, T_TRUE)
+    desc = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
+    landmarks = build_landmarks(_tracks(xyz, desc, rng), "synthetic", 120, LandmarksOptions(),
+                                np.array([[CAM.width, CAM.height]] * len(MAPPING)))
+    noisy = unit_descriptors(desc + 0.02 * rng.random(desc.shape))
+    distract = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
+    feats = QueryFeatures(np.concatenate([uv + rng.normal(0, 0.3, uv.shape),
+                                          rng.uniform([0, 0], [CAM.width, CAM.height], (N_POINTS, 2))]),
+                          np.concatenate([noisy, distract]).astype(np.float32))
+    return landmarks, feats
+
+
+def _map(tmp_path: Path, landmarks: Landmarks, monkeypatch: pytest.MonkeyPatch, feats: QueryFeatures,
+         learned: tuple[np.ndarray, np.ndarray] | None = WRONG) -> Path:
+    """A map whose scene coordinates put the photo at `learned` (None: coordinates that agree on
+    no pose, as for a photo of another place), with the landmarks beside it."""
+    coords = coordinate_map(learned, learned, noise=0.0) if learned is not None else \
+        np.random.default_rng(5).normal(0.0, 2.0, (300, 3)) + [0.0, 0.0, 3.0]
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: coords.reshape(15, 20, 3))
+    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    path = make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32), META)
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
+    return path
+
+
+def test_landmarks_keep_every_observation_and_read_back(tmp_path: Path):
+    landmarks, _ = scene()
+    obs = landmarks.observations
+    assert obs is not None and len(obs.landmark) == int(landmarks.track_length.sum())
+    assert np.all(np.diff(obs.image) >= 0) and [i for i, _, _ in obs.image_slices()] == list(range(len(MAPPING)))
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
+    back = read_landmarks(tmp_path / LANDMARKS_H5)
+    assert back.observations is not None
+    for name in ("landmark", "image", "uv", "descriptor", "image_K", "image_size"):
+        assert np.array_equal(getattr(back.observations, name), getattr(obs, name)), name
+    assert back.observations.image_names == obs.image_names
+
+
+def test_observations_that_name_a_missing_landmark_are_refused():
+    landmarks, _ = scene()
+    obs = landmarks.observations
+    obs.landmark[0] = len(landmarks)
+    with pytest.raises(UsvcError, match="names a landmark outside"):
+        Landmarks(landmarks.scene, landmarks.xyz, landmarks.descriptor, landmarks.view_dir, landmarks.view_angle_deg,
+                  landmarks.track_length, 120, obs)
+
+
+def test_mutual_ratio_matching_keeps_only_clear_mutual_nearest_neighbours():
+    rng = np.random.default_rng(0)
+    image = unit_descriptors(rng.random((50, 128)) ** 4)
+    # rows 30 and 31: two keypoints nearest to the same image descriptor; only the closer one is mutual
+    query = unit_descriptors(np.concatenate([image[:30] + 0.02 * rng.random((30, 128)),
+                                             image[30:31] + 0.05 * rng.random((1, 128)),
+                                             image[30:31] + 0.01 * rng.random((1, 128))]))
+    q, m = mutual_ratio_matches(query.astype(np.float32), image.astype(np.float32))
+    assert np.array_equal(q, [*range(30), 31]) and np.array_equal(m, [*range(30), 30])
+    confusable = unit_descriptors(np.stack([image[0], image[0] + 1e-3]))  # a twin: fails the ratio test
+    assert len(mutual_ratio_matches(query[:1].astype(np.float32), confusable.astype(np.float32))[0]) == 0
+
+
+def test_verified_matches_lift_the_query_keypoints_to_their_points():
+    landmarks, feats = scene()
+    found = verified_matches(landmarks, feats, CAM, seed=0)
+    assert found.images == len(MAPPING) and found.verified_pairs == len(MAPPING)
+    assert len(found) >= 0.8 * N_POINTS * 2  # each point in several mapping images: one correspondence per image
+    uv, _ = project_points(CAM, found.xyz, R_TRUE, T_TRUE)
+    assert np.median(np.linalg.norm(uv - found.uv, axis=1)) < 1.0  # right correspondences
+    assert np.all(found.keypoint < N_POINTS)  # no distractor was lifted
+    _, other = scene(1)  # another place's keypoints: nothing survives matching and verification
+    assert len(verified_matches(landmarks, other, CAM, seed=0)) < MIN_PAIR_INLIERS
+
+
+def test_a_wrong_learned_pose_still_localizes_through_the_fallback(tmp_path: Path, monkeypatch):
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats)
+    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
+    assert errors(est.initial_R, est.initial_t)[0] > 30  # the learned pose is the wrong one
+    assert est.success and est.refine_path in ("global", "verified"), est.rejected
+    rot, trans = errors(est.R, est.t)
+    assert rot < 0.2 and trans < 0.01  # from 35 deg and a metre off
+    rec = est.to_json()["refinement"]
+    assert [h["path"] for h in rec["hypotheses"]] == ["guided", "global", "verified"]
+    assert rec["hypotheses"][0]["inliers"] == 0 and rec["path"] == est.refine_path
+    assert rec["verified_matching"]["verified_pairs"] == len(MAPPING)
+
+
+def test_the_fallback_serves_a_photo_even_when_single_descriptors_fail(tmp_path: Path, monkeypatch):
+    """The landmarks' one descriptor per point says nothing (all alike): matching against every
+    landmark fails, SIFT + PnP's per-observation evidence does not."""
+    landmarks, feats = scene()
+    blank = Landmarks(landmarks.scene, landmarks.xyz, np.full_like(landmarks.descriptor, 11), landmarks.view_dir,
+                      landmarks.view_angle_deg, landmarks.track_length, 120, landmarks.observations)
+    path = _map(tmp_path, blank, monkeypatch, feats)
+    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
+    assert est.success and est.refine_path == "verified", est.rejected
+    assert errors(est.R, est.t)[0] < 0.2
+
+
+def test_prior_none_uses_the_fallback_alone(tmp_path: Path, monkeypatch):
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
+    est = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(prior="none")).localize(photo(), CAM)
+    assert est.success and est.refine_path == "verified"
+    assert np.isnan(est.initial_R).all()  # no learned pose was solved for
+    assert [h["path"] for h in est.to_json()["refinement"]["hypotheses"]] == ["verified"]
+    assert est.to_json()["refinement"]["prior"] == "none"
+    assert errors(est.R, est.t)[0] < 0.2
+    # without intrinsics: the focal length from the verified matches (P4Pf)
+    free = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(prior="none")).localize(photo(), None)
+    assert free.success and abs(free.camera.params[0] / CAM.focal[0] - 1.0) < 0.05
+
+
+def test_a_photo_of_another_place_is_still_refused(tmp_path: Path, monkeypatch):
+    landmarks, _ = scene(0)
+    _, other = scene(1)
+    for prior in ("learned", "none"):
+        path = _map(tmp_path, landmarks, monkeypatch, other, learned=None)
+        est = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(prior=prior)).localize(photo(), CAM)
+        assert not est.success and est.rejected and np.isnan(est.R).all(), prior
+        assert "evidence" in est.to_json()  # what was weighed is still reported
+
+
+def test_no_check_on_the_learned_pose_refuses_before_the_features_run(tmp_path: Path, monkeypatch):
+    """The map's coordinates imply another focal length than the given one (a map that fits its
+    scene poorly looks like this): the features, which find the right pose, decide."""
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats)
+    reloc = Relocalizer(path, tmp_path / "encoder.pt")
+    calls: list[str] = []
+    real_features, real_focal = Relocalizer._features, Relocalizer._focal_disagreement
+    monkeypatch.setattr(Relocalizer, "_features", lambda *a, **k: calls.append("features") or real_features(*a, **k))
+    monkeypatch.setattr(Relocalizer, "_focal_disagreement",
+                        lambda *a, **k: calls.append("map focal") or real_focal(*a, **k))
+    real_stretch = relocalizer_module.stretch_verdict
+    monkeypatch.setattr(relocalizer_module, "stretch_verdict",
+                        lambda *a, **k: calls.append("stretch") or real_stretch(*a, **k))
+    for intrinsics in (CAM, None):
+        calls.clear()
+        est = reloc.localize(photo(), intrinsics)
+        assert calls and calls[0] == "features", (intrinsics, calls)
+        assert est.success and est.refine_path in ("global", "verified"), est.rejected
+        # from 35 deg off; without intrinsics a square-pixel focal is estimated for this fx != fy camera
+        assert errors(est.R, est.t)[0] < (0.2 if intrinsics is not None else 3.0)
+    # the learned pose alone (no landmarks): its own checks judge it, once it was found
+    plain = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(refine="none"))
+    calls.clear()
+    plain.localize(photo(), None)
+    assert calls == ["stretch"]
+
+
+def test_prior_none_needs_landmarks_with_observations(tmp_path: Path, monkeypatch):
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats)
+    with pytest.raises(UsvcError, match="prior=none needs relocalize.refine=features"):
+        Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(prior="none", refine="none"))
+    old = Landmarks(landmarks.scene, landmarks.xyz, landmarks.descriptor, landmarks.view_dir,
+                    landmarks.view_angle_deg, landmarks.track_length, 120)
+    write_landmarks(tmp_path / LANDMARKS_H5, old)
+    with pytest.raises(UsvcError, match="needs landmarks with their observations"):
+        Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(prior="none"))
+    assert RelocalizeOptions(prior="maybe").problems()[0].startswith("prior=")
+
+
+def test_the_fallback_registers_with_the_baselines_threshold():
+    from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX
+    from usvc.sfm.posing import QUERY_MAX_ERROR_PX
+
+    assert VERIFIED_MAX_ERROR_PX == QUERY_MAX_ERROR_PX

@@ -1,0 +1,129 @@
+"""The evidence SIFT + PnP uses, for a query the learned pose does not lead to: the query's SIFT
+keypoints matched to each mapping image's keypoints that carry SfM points, the matches of each
+pair verified by two-view geometry, and the verified matches lifted to the points through the
+tracks (landmarks.h5's observations).
+
+Matching follows COLMAP's SIFT matcher (nearest neighbour by the angle between unit descriptors,
+at most MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
+is COLMAP's own (`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography
+matrix, whichever explains the pair, at least MIN_PAIR_INLIERS inliers), as the sfm stage and
+`benchmarks/baseline_sift.py` match and verify. A keypoint matched in several mapping images gives
+one correspondence per image, as in the baseline. The correspondences do not depend on the query's
+intrinsics beyond verification, so they also judge a given focal length (P4Pf).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from usvc.core.scene import Camera
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, unit_descriptors
+from usvc.relocalize.query_features import QueryFeatures
+
+log = logging.getLogger(__name__)
+
+MAX_RATIO = 0.8  # COLMAP's SiftMatchingOptions.max_ratio
+MAX_DISTANCE = 0.7  # COLMAP's max_distance: the angle (rad) between unit descriptors
+MIN_PAIR_INLIERS = 15  # COLMAP's TwoViewGeometryOptions.min_num_inliers
+_VALID = {pycolmap.TwoViewGeometryConfiguration.CALIBRATED, pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED,
+          pycolmap.TwoViewGeometryConfiguration.PLANAR, pycolmap.TwoViewGeometryConfiguration.PANORAMIC,
+          pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC}
+
+
+@dataclass
+class VerifiedMatches:
+    """2D-3D correspondences from verified pairs, and what it took to find them."""
+
+    uv: np.ndarray  # (C,2) query keypoints (pixels of the feature image)
+    xyz: np.ndarray  # (C,3) the SfM points they were lifted to
+    landmark: np.ndarray  # (C,) landmark rows
+    keypoint: np.ndarray  # (C,) query keypoint rows
+    images: int  # mapping images compared
+    matched_pairs: int  # pairs with at least MIN_PAIR_INLIERS descriptor matches
+    verified_pairs: int  # pairs whose matches two-view geometry verified
+    seconds: float
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    def record(self) -> dict:
+        return {"images": self.images, "matched_pairs": self.matched_pairs, "verified_pairs": self.verified_pairs,
+                "correspondences": len(self)}
+
+
+def mutual_ratio_matches(query: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(query rows, image rows) matched as COLMAP's CPU matcher does for two sets of unit
+    descriptors: nearest by angle, within MAX_DISTANCE, ratio test, mutual nearest."""
+    if len(query) == 0 or len(image) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    sim = query @ image.T  # (K, n)
+    rows = np.arange(len(query))
+    first = np.argmax(sim, axis=1)
+    s1 = sim[rows, first]
+    if sim.shape[1] > 1:
+        sim[rows, first] = -np.inf
+        s2 = sim.max(axis=1)
+        sim[rows, first] = s1  # restore for the mutual check
+    else:
+        s2 = np.full(len(query), -np.inf, np.float32)
+    d1 = np.arccos(np.clip(s1, -1.0, 1.0))
+    d2 = np.where(np.isfinite(s2), np.arccos(np.clip(s2, -1.0, 1.0)), np.inf)
+    ok = (d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2)
+    ok &= np.argmax(sim, axis=0)[first] == rows
+    q = np.flatnonzero(ok)
+    return q, first[q]
+
+
+def _pycolmap_camera(K: np.ndarray, width: int, height: int) -> pycolmap.Camera:
+    return pycolmap.Camera(model="PINHOLE", width=int(width), height=int(height),
+                           params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+
+
+def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
+                     image_descriptors: list[np.ndarray] | None = None) -> VerifiedMatches:
+    """The query's correspondences to the landmarks through every mapping image (see the module).
+    `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
+    verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
+    descriptors of each image's observations (`observation_descriptors`), computed once per map."""
+    t0 = time.perf_counter()
+    obs = landmarks.observations
+    if obs is None:
+        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
+    slices = obs.image_slices()
+    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    options = pycolmap.TwoViewGeometryOptions()
+    options.ransac.random_seed = int(seed)
+    qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
+                           params=[*camera.focal, *camera.principal_point])
+    uv, landmark, keypoint = [], [], []
+    matched = verified = 0
+    for (image, a, b), desc in zip(slices, descs):
+        qi, mi = mutual_ratio_matches(feats.descriptor, desc)
+        if len(qi) < MIN_PAIR_INLIERS:
+            continue
+        matched += 1
+        w, h = obs.image_size[image]
+        geometry = pycolmap.estimate_two_view_geometry(
+            qcam, feats.uv, _pycolmap_camera(obs.image_K[image], w, h), obs.uv[a:b].astype(np.float64),
+            np.stack([qi, mi], axis=1).astype(np.uint32), options)
+        inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        if geometry.config not in _VALID or len(inl) < MIN_PAIR_INLIERS:
+            continue
+        verified += 1
+        keypoint.append(inl[:, 0])
+        landmark.append(obs.landmark[a + inl[:, 1]].astype(np.int64))
+    kp = np.concatenate(keypoint) if keypoint else np.zeros(0, np.int64)
+    lm = np.concatenate(landmark) if landmark else np.zeros(0, np.int64)
+    uv = feats.uv[kp].reshape(-1, 2)
+    return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(slices), matched, verified,
+                           time.perf_counter() - t0)
+
+
+def observation_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
+    """Unit float32 descriptors of each image's observations, in `image_slices` order."""
+    return [unit_descriptors(obs.descriptor[a:b]) for _, a, b in obs.image_slices()]
