@@ -368,3 +368,8 @@ def test_localize_landmarks_flags(files: dict[str, Path], tmp_path: Path) -> Non
     assert json.loads(plain.stdout)["success"] in (True, False)
     bad = usvc(*base, "--refine", "sometimes", files["photo"])
     assert bad.returncode == 2 and "--refine" in bad.stderr
+    # --prior none without landmarks: one line saying what it needs, no traceback
+    blind = usvc(*base, "--prior", "none", files["photo"])
+    assert blind.returncode == 1 and "prior=none needs the map's landmarks" in blind.stderr
+    assert len(blind.stderr.strip().splitlines()) == 1 and "Traceback" not in blind.stderr
+    assert usvc(*base, "--prior", "maybe", files["photo"]).returncode == 2

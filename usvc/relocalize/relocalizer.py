@@ -157,9 +157,6 @@ class Relocalizer:
                             "without the learned pose only the photo's features can give a pose")
         if self.options.refine == "features":
             self._load_landmarks(landmarks)
-        if not self.prior and self.landmarks is None:
-            raise UsvcError(f"relocalize.prior=none needs the map's landmarks, and map {self.map_path} has none "
-                            "beside it (landmarks.h5; --landmarks names it)")
 
     def _load_landmarks(self, landmarks: str | Path | None) -> None:
         """Read and check the map's landmarks; a map without them localizes without refinement."""
@@ -167,6 +164,9 @@ class Relocalizer:
             raise UsvcError(f"landmarks must be the path of a landmarks.h5, got {type(landmarks).__name__}")
         path = Path(landmarks) if landmarks is not None else landmarks_beside(self.map_path)
         if path is None:
+            if not self.prior:
+                raise UsvcError(f"relocalize.prior=none needs the map's landmarks, and map {self.map_path} has none "
+                                "beside it (landmarks.h5; --landmarks names it)")
             log.warning("map %s has no landmarks beside it (landmarks.h5): refinement by features is off",
                         self.map_path)
             return
