@@ -320,19 +320,8 @@ class Relocalizer:
             if intrinsics is None and feature.success and not feature_rejected:
                 given = full_camera  # the focal length the features estimated with the pose
             if feature_rejected == FOCAL_UNOBSERVABLE:
-                # the matches to every landmark cannot tell the focal length: the map's coordinates
-                # decide where they read this photo, else SIFT + PnP's verified matches
-                if self._map_reads(result, feature, hc * wc):
-                    wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
-                    feature_rejected = self._focal_disagreement(pixels, coords, camera, threshold, wide,
-                                                                intrinsics_source)
-                else:
-                    feature_rejected = self._feature_focal_verdict(feature_evidence, intrinsics_source,
-                                                                   verified=True)
-                    feature.verified = feature_evidence.verified_record()
-                    feature.verified_seconds = feature_evidence.verified_seconds()
-                    if feature_rejected == FOCAL_UNOBSERVABLE:
-                        feature_rejected = ""  # nothing contradicts the given focal length
+                feature_rejected = self._focal_without_global_evidence(
+                    result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source)
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
@@ -373,15 +362,30 @@ class Relocalizer:
                             verified=feature.verified if feature is not None else None,
                             warnings=warnings, pose_found=pose_found, prior=self.options.prior)
 
-    def _map_reads(self, dense: PnPResult, feature: FeatureResult, cells: int) -> bool:
-        """Whether the map's coordinates describe this photo well enough to judge its focal length:
-        there is a learned pose, it agrees with the features' and at least min_confidence of the
-        cells agree with it (a photo the map cannot read, e.g. turned sideways, or a map that fits
-        its scene poorly gives them no say). They judge at a wider tolerance since they are coarse
-        ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still fails)."""
-        return bool(self.prior and dense.success and feature.success
-                    and dense.num_inliers >= self.options.min_confidence * cells
-                    and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
+    def _focal_without_global_evidence(self, dense: PnPResult, feature: FeatureResult, evidence: _Evidence,
+                                       pixels: np.ndarray, coords: np.ndarray, camera: Camera | None,
+                                       threshold: float, cells: int, source: str) -> str:
+        """Why the given focal length is wrong ("" when nothing says so) when the matches to every
+        landmark cannot tell, from the next evidence in order: the map's coordinates where they
+        read this photo well (the learned pose agrees with the features' and min_confidence of the
+        cells agree with it); else SIFT + PnP's verified matches (P4Pf); else the map's coordinates
+        where the learned pose at least agrees with the features'. The map judges at a wider
+        tolerance since it is coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still
+        fails); a photo it cannot read (turned sideways) gives it no say."""
+        agree = bool(self.prior and dense.success and feature.success and camera is not None
+                     and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
+        wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
+        if agree and dense.num_inliers >= self.options.min_confidence * cells:
+            assert camera is not None
+            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
+        verdict = self._feature_focal_verdict(evidence, source, verified=True)
+        feature.verified, feature.verified_seconds = evidence.verified_record(), evidence.verified_seconds()
+        if verdict != FOCAL_UNOBSERVABLE:
+            return verdict
+        if agree:
+            assert camera is not None
+            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
+        return ""  # nothing contradicts the given focal length
 
     def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
         """Why neither the map's coordinates nor the features gave a pose."""
