@@ -18,6 +18,7 @@ the tracks), PnP, then the same guided passes.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -263,9 +264,11 @@ def _from_correspondences(path: str, uv: np.ndarray, xyz: np.ndarray, record: di
 
 
 def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
-                opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
-    """The query's keypoints matched against every landmark's one descriptor, PnP, then tightened."""
-    li, ki = global_matches(lm_desc, feats, opts.ratio)
+                opts: FeatureMatchOptions, seed: int = 0,
+                matches: tuple[np.ndarray, np.ndarray] | None = None) -> FeatureResult:
+    """The query's keypoints matched against every landmark's one descriptor (`matches`, when
+    already computed: `global_matches`' landmark and keypoint rows), PnP, then tightened."""
+    li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio)
     record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
     return _from_correspondences("global", feats.uv[ki], landmarks.xyz[li], record, landmarks, lm_desc, feats,
                                  camera, opts, seed)
@@ -304,16 +307,22 @@ def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
 
 def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
                        R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
-                       verified: VerifiedMatches | None = None) -> FeatureResult:
+                       verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
+                       global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
     from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior),
-    matching against every landmark and, given `verified` (SIFT + PnP's evidence), PnP on those too;
-    the hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors."""
+    matching against every landmark (unless not `use_global`; `global_pairs` gives those matches
+    when they are computed already) and SIFT + PnP's evidence (`verified`, called only then: it is
+    the expensive one); the hypothesis with the most support wins. `lm_desc` are the landmarks'
+    unit descriptors."""
     hypotheses = []
     if R0 is not None and t0 is not None:
         hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
     if not hypotheses or not hypotheses[0].success:
-        hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed))
-        if verified is not None:
-            hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, verified, opts, seed))
+        if use_global:
+            hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
+                                          global_pairs() if global_pairs is not None else None))
+        found = verified() if verified is not None else None
+        if found is not None:
+            hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, found, opts, seed))
     return best_hypothesis(hypotheses)

@@ -29,15 +29,7 @@ from usvc.model.head import Regressor
 from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.feature_refinement import (
-    FeatureMatchOptions,
-    FeatureResult,
-    best_hypothesis,
-    from_global,
-    from_prior,
-    from_verified,
-    global_matches,
-)
+from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, refine_by_features
 from usvc.relocalize.pnp import (
     PnPResult,
     estimate_focal,
@@ -57,7 +49,8 @@ from usvc.relocalize.camera_checks import (
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.refinement import RefineOptions, refine_pose
-from usvc.relocalize.verified_matching import VerifiedMatches, observation_descriptors, verified_matches
+from usvc.relocalize.query_evidence import QueryEvidence
+from usvc.relocalize.verified_matching import observation_descriptors
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
 log = logging.getLogger(__name__)
@@ -362,7 +355,7 @@ class Relocalizer:
                             verified=feature.verified if feature is not None else None,
                             warnings=warnings, pose_found=pose_found, prior=self.options.prior)
 
-    def _focal_without_global_evidence(self, dense: PnPResult, feature: FeatureResult, evidence: _Evidence,
+    def _focal_without_global_evidence(self, dense: PnPResult, feature: FeatureResult, evidence: QueryEvidence,
                                        pixels: np.ndarray, coords: np.ndarray, camera: Camera | None,
                                        threshold: float, cells: int, source: str) -> str:
         """Why the given focal length is wrong ("" when nothing says so) when the matches to every
@@ -396,7 +389,7 @@ class Relocalizer:
         return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
 
     def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool,
-                  source: str = "") -> tuple[FeatureResult, str, Camera, _Evidence]:
+                  source: str = "") -> tuple[FeatureResult, str, Camera, QueryEvidence]:
         """Refinement by features on the undistorted photo (resized to the mapping images' short
         side when larger); returns the result, why it is not trusted ("") and the camera it used,
         at the photo's size.
@@ -416,10 +409,11 @@ class Relocalizer:
         feats = extract_sift(np.clip(np.rint(gray01 * 255.0), 0, 255).astype(np.uint8),
                              self.options.features_max_keypoints, self.options.features_extractor)
         opts = feature_options(self.options, min(gray01.shape))
-        evidence = _Evidence(self, feats, opts, camera)
+        evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
+                                 self.seed, use_global=self.prior)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         if not check_focal:
-            for uv, xyz in evidence.unguided(camera):
+            for uv, xyz in evidence.unguided():
                 fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
                 if fp is None or int(fp.inlier_mask.sum()) < opts.min_inliers:
                     continue
@@ -436,24 +430,16 @@ class Relocalizer:
         return found, self._feature_focal_verdict(evidence, source), full, evidence
 
     def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
-                    evidence: _Evidence) -> FeatureResult:
+                    evidence: QueryEvidence) -> FeatureResult:
         assert self.landmarks is not None
-        lm, desc = self.landmarks, self._landmark_desc
-        tried = []
-        if prior[0] is not None:
-            tried.append(from_prior(lm, desc, feats, camera, prior[0], prior[1], opts, self.seed))
-        if not tried or not tried[0].success:
-            if self.prior or lm.observations is None:
-                tried.append(from_global(lm, desc, feats, camera, opts, self.seed))
-            verified = evidence.verified(camera)
-            if verified is not None:
-                tried.append(from_verified(lm, desc, feats, camera, verified, opts, self.seed))
-        found = best_hypothesis(tried)
+        found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
+                                   self.seed, verified=evidence.verified, use_global=evidence.use_global,
+                                   global_pairs=evidence.global_pairs)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()
         return found
 
-    def _feature_focal_verdict(self, evidence: _Evidence, source: str = "", verified: bool = False) -> str:
+    def _feature_focal_verdict(self, evidence: QueryEvidence, source: str = "", verified: bool = False) -> str:
         """Why the photo's features contradict the given focal length ("" when they do not), or
         FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on
         correspondences that do not depend on the given intrinsics (guided matches were picked by
@@ -464,7 +450,7 @@ class Relocalizer:
         assert self.landmarks is not None
         tol = self.options.focal_tolerance
         camera, opts = evidence.camera, evidence.opts
-        for uv, xyz in evidence.unguided(camera, global_matches=not verified, verified=verified):
+        for uv, xyz in evidence.unguided(global_matches=not verified, verified=verified):
             found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
             if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
                 continue
@@ -484,47 +470,3 @@ class Relocalizer:
                 return ""
             return _focal_reason("the matched features imply", ratio, tol, source)
         return FOCAL_UNOBSERVABLE
-
-
-class _Evidence:
-    """The photo's correspondences that do not depend on its intrinsics, computed once and only
-    when asked for: the matches to every landmark's descriptor, then SIFT + PnP's verified ones."""
-
-    def __init__(self, relocalizer: Relocalizer, feats: QueryFeatures, opts: FeatureMatchOptions,
-                 camera: Camera) -> None:
-        self.reloc, self.feats, self.opts, self.camera = relocalizer, feats, opts, camera
-        self._global: tuple[np.ndarray, np.ndarray] | None = None
-        self._verified: VerifiedMatches | None = None
-
-    def global_matches(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._global is None:
-            lm = self.reloc.landmarks
-            assert lm is not None
-            li, ki = global_matches(self.reloc._landmark_desc, self.feats, self.opts.ratio)
-            self._global = self.feats.uv[ki], lm.xyz[li]
-        return self._global
-
-    def verified(self, camera: Camera) -> VerifiedMatches | None:
-        """SIFT + PnP's evidence (None for landmarks without observations)."""
-        lm = self.reloc.landmarks
-        if lm is None or lm.observations is None:
-            return None
-        if self._verified is None:
-            self._verified = verified_matches(lm, self.feats, camera, self.reloc.seed,
-                                              self.reloc._observation_desc)
-        return self._verified
-
-    def verified_record(self) -> dict | None:
-        return None if self._verified is None else self._verified.record()
-
-    def verified_seconds(self) -> float | None:
-        return None if self._verified is None else self._verified.seconds
-
-    def unguided(self, camera: Camera, global_matches: bool = True, verified: bool = True):
-        """(uv, xyz) of the global matches (unless prior=none), then of the verified ones."""
-        lm = self.reloc.landmarks
-        if global_matches and (self.reloc.prior or lm is None or lm.observations is None):
-            yield self.global_matches()
-        found = self.verified(camera) if verified else None
-        if found is not None:
-            yield found.uv, found.xyz

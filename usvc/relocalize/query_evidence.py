@@ -1,0 +1,61 @@
+"""A query photo's correspondences to the landmarks that do not depend on its intrinsics, computed
+once per query and only when asked for: the matches to every landmark's one descriptor (cheap),
+then SIFT + PnP's verified matches (`verified_matching`: the expensive fallback). The relocalizer's
+hypotheses and its focal-length checks (P4Pf) share them."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from usvc.core.scene import Camera
+from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
+from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.verified_matching import VerifiedMatches, verified_matches
+
+
+class QueryEvidence:
+    """`camera` is the query's at the feature image's size (an assumed focal length is fine: the
+    verification tells an essential from a fundamental matrix); `use_global` False (prior=none)
+    leaves the global matches out of `unguided`."""
+
+    def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[np.ndarray] | None,
+                 feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
+                 use_global: bool = True) -> None:
+        self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
+        self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
+        self.use_global = use_global or landmarks.observations is None
+        self._global: tuple[np.ndarray, np.ndarray] | None = None
+        self._verified: VerifiedMatches | None = None
+
+    def global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(landmark rows, keypoint rows) of the matches to every landmark."""
+        if self._global is None:
+            self._global = global_matches(self.landmark_desc, self.feats, self.opts.ratio)
+        return self._global
+
+    def verified(self) -> VerifiedMatches | None:
+        """SIFT + PnP's evidence (None for landmarks without observations)."""
+        if self.landmarks.observations is None:
+            return None
+        if self._verified is None:
+            self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
+                                              self.observation_desc)
+        return self._verified
+
+    def verified_record(self) -> dict | None:
+        return None if self._verified is None else self._verified.record()
+
+    def verified_seconds(self) -> float | None:
+        return None if self._verified is None else self._verified.seconds
+
+    def unguided(self, global_matches: bool = True, verified: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(uv, xyz) of the global matches (unless not use_global), then of the verified ones."""
+        if global_matches and self.use_global:
+            li, ki = self.global_pairs()
+            yield self.feats.uv[ki], self.landmarks.xyz[li]
+        found = self.verified() if verified else None
+        if found is not None:
+            yield found.uv, found.xyz
