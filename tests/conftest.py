@@ -9,6 +9,29 @@ from usvc.sfm.tracks_file import Tracks
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+AUTO_PRECISIONS = ("native", "bf16", "fp32")
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--auto-precision", choices=AUTO_PRECISIONS, default="native",
+        help="what precision=auto resolves to on the CPU in this process: native (this CPU's own "
+             "choice), bf16 (as on a CPU with native bf16; emulated, slower, elsewhere) or fp32 (as on "
+             "an AVX2-only CPU). CI runs the tests marked `precision` under both forced values.")
+
+
+@pytest.fixture(autouse=True)
+def _auto_precision(request, monkeypatch):
+    """Make `auto` resolve as on another CPU (--auto-precision): the capability check and the probe
+    answer as that CPU's would (except in tests marked `probe`, which test them); a test that patches
+    them itself still wins inside the test."""
+    forced = request.config.getoption("--auto-precision")
+    if forced != "native" and request.node.get_closest_marker("probe") is None:
+        from usvc.core import precision
+
+        monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: forced == "bf16")
+        monkeypatch.setattr(precision, "cpu_bf16_speedup", lambda: 10.0 if forced == "bf16" else 1.0)
+    yield
 
 
 def shared_scene(name: str) -> Path:

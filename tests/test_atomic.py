@@ -27,6 +27,25 @@ def test_atomic_file_leaves_nothing_on_failure(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("kind", ["dir", "file"])
+def test_a_failed_write_removes_the_folders_it_created_and_only_those(tmp_path, kind):
+    write = atomic_dir if kind == "dir" else atomic_file
+    kept = tmp_path / "data"
+    kept.mkdir()
+    (kept / "other").write_text("another scene's")
+    with pytest.raises(RuntimeError):
+        with write(kept / "scene" / "stage" / "out"):
+            raise RuntimeError("failed")
+    assert sorted(p.name for p in kept.iterdir()) == ["other"], "no empty data/scene/stage/ left"
+    with write(kept / "scene" / "out") as tmp:
+        (tmp / "x" if kind == "dir" else tmp).write_text("x")
+    assert (kept / "scene" / "out").exists()
+    with pytest.raises(RuntimeError):
+        with write(kept / "scene" / "more"):
+            raise RuntimeError("failed")
+    assert (kept / "scene" / "out").exists(), "a folder that holds other work stays"
+
+
 def _dead_pid() -> int:
     import subprocess
     import sys

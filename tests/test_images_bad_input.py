@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import SceneError, UsvcError
 from usvc.core.exif import MAX_IMAGE_PIXELS, apply_orientation, oriented_size
-from usvc.core.images import read_image_bgr
+from usvc.core.images import read_image_bgr, read_photo
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.undistort import MIN_KEPT_SIDE, check_distortion, undistorted_camera
 from usvc.metrics.alignment import align_and_compare
@@ -45,15 +45,64 @@ def bomb_png(path: Path, width: int, height: int) -> Path:
     return path
 
 
-@pytest.mark.parametrize("size", [(20000, 20000), (12000, 10000)])  # over Pillow's own limit; over ours only
-def test_an_image_claiming_too_many_pixels_is_refused_from_its_header(tmp_path: Path, size: tuple[int, int]) -> None:
-    png = bomb_png(tmp_path / "huge.png", *size)
-    assert png.stat().st_size < 100_000 and size[0] * size[1] > MAX_IMAGE_PIXELS
-    megapixels = f"{size[0]}x{size[1]} = {size[0] * size[1] / 1e6:.0f} megapixels"
-    for read in (read_image_bgr, oriented_size):
-        with pytest.raises(SceneError, match=rf"huge\.png is {megapixels}, more than the 100 megapixel limit") as e:
+def test_an_image_claiming_more_pixels_than_a_camera_makes_is_refused_from_its_header(tmp_path: Path) -> None:
+    png = bomb_png(tmp_path / "huge.png", 20000, 20000)  # over Pillow's own limit too
+    assert png.stat().st_size < 100_000 and 20000 * 20000 > MAX_IMAGE_PIXELS
+    for read in (read_image_bgr, read_photo, oriented_size):
+        with pytest.raises(SceneError, match=r"huge\.png is 20000x20000 = 400 megapixels, more than any camera "
+                                             r"makes \(the 250 megapixel limit") as e:
             read(png)
         assert "\n" not in str(e.value)
+
+
+def test_a_png_over_the_decode_limit_is_refused_in_one_line(tmp_path: Path) -> None:
+    png = bomb_png(tmp_path / "big.png", 12000, 10000)  # a camera could make it; its PNG cannot decode reduced
+    assert oriented_size(png) == (12000, 10000)
+    with pytest.raises(SceneError, match=r"big\.png is 12000x10000 = 120 megapixels, more than the 100 megapixels "
+                                         r"decoded in full, and only JPEGs decode reduced"):
+        read_photo(png)
+    with pytest.raises(SceneError, match=r"more than the 100 megapixels decoded in full, downscale it"):
+        read_image_bgr(png)
+
+
+@pytest.mark.parametrize("limit, reduction", [(10**9, 1), (320 * 240 - 1, 2), (320 * 240 // 4 - 1, 4),
+                                              (320 * 240 // 16 - 1, 8)])
+def test_a_jpeg_over_the_decode_limit_is_decoded_reduced_and_says_by_how_much(tmp_path: Path, monkeypatch, limit,
+                                                                               reduction) -> None:
+    from usvc.core import images
+
+    bgr = cv2.resize(np.random.default_rng(0).integers(0, 256, (24, 32, 3), dtype=np.uint8), (320, 240))
+    jpg = tmp_path / "big.jpg"
+    cv2.imwrite(str(jpg), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    monkeypatch.setattr(images, "MAX_DECODE_PIXELS", limit)
+    found = read_photo(jpg)
+    assert found.reduction == reduction and found.size == (320, 240)
+    assert found.bgr.shape == (240 // reduction, 320 // reduction, 3) and found.scale() == (1 / reduction,) * 2
+    expected = cv2.resize(bgr, (320 // reduction, 240 // reduction), interpolation=cv2.INTER_AREA)
+    assert np.abs(found.bgr.astype(int) - expected).mean() < 4  # the same picture, smaller
+    if reduction > 1:
+        with pytest.raises(SceneError, match="read it with read_photo"):
+            read_image_bgr(jpg)
+    monkeypatch.setattr(images, "MAX_DECODE_PIXELS", 320 * 240 // 64 - 1)
+    with pytest.raises(SceneError, match="even reduced 8 times"):
+        read_photo(jpg)
+
+
+def test_a_turned_jpeg_over_the_limit_is_turned_and_reduced(tmp_path: Path, monkeypatch) -> None:
+    from usvc.core import images
+
+    stored = cv2.resize(np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8), (320, 240))
+    jpg = tmp_path / "portrait.jpg"
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(stored[..., ::-1]).save(jpg, quality=95, exif=exif)
+    monkeypatch.setattr(images, "MAX_DECODE_PIXELS", 320 * 240 - 1)
+    found = read_photo(jpg)
+    assert found.size == (240, 320) and found.bgr.shape == (160, 120, 3) and found.reduction == 2
+    monkeypatch.setattr(images, "MAX_DECODE_PIXELS", 10**9)
+    full = read_photo(jpg).bgr
+    half = cv2.resize(full, (120, 160), interpolation=cv2.INTER_AREA)
+    assert np.abs(found.bgr.astype(int) - half).mean() < 4
 
 
 def test_an_image_under_the_limit_still_decodes(tmp_path: Path) -> None:

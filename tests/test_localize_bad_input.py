@@ -335,3 +335,29 @@ def test_an_exif_focal_the_content_contradicts_says_exif(tiny_map: tuple[Path, P
     (record,) = records_of(out)
     assert record["success"] is True and record["intrinsics_source"] == "estimated"
     assert record["camera"]["params"][0] == pytest.approx(130.0, rel=1e-3)
+
+
+# ------------------------------------------------------------------ a photo over the decode limit
+
+def test_a_photo_over_the_decode_limit_is_localized_from_its_reduced_pixels(
+        tiny_map: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A JPEG over MAX_DECODE_PIXELS (a 108 MP phone photo) is decoded reduced; its intrinsics, given
+    for its own pixels, are scaled with it, and the answer's camera is the photo's."""
+    from test_relocalizer import assert_true_pose
+
+    from usvc.core import images
+
+    big = tmp_path / "big.jpg"
+    cv2.imwrite(str(big), cv2.resize(photo(160, 120), (320, 240)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    monkeypatch.setattr(images, "MAX_DECODE_PIXELS", 320 * 240 - 1)
+    exactly(monkeypatch)  # the network sees CENTRED (f = 130 px at 160x120): f = 260 px at the photo's 320x240
+    for intrinsics in (260.0, None):
+        est = Relocalizer(*tiny_map).localize(big, intrinsics)
+        assert_true_pose(est)
+        assert (est.camera.width, est.camera.height) == (320, 240)
+        assert est.camera.focal[0] == pytest.approx(260.0, rel=1e-3)
+        assert any("320x240" in w and "decoded at 1/2 (160x120)" in w for w in est.warnings)
+    rc, out, err = run(capsys, tiny_map, "--focal", "260", big)
+    record = records_of(out)[0]
+    assert rc == 0 and record["success"] and record["camera"]["width"] == 320, (out, err)

@@ -69,6 +69,7 @@ def test_explicit_settings_are_kept_and_unknown_ones_refused():
             pass
 
 
+@pytest.mark.probe
 def test_the_probe_is_measured_once_per_process(monkeypatch, fresh_probe):
     calls = []
     monkeypatch.setattr(prec, "_time_products", lambda dtype, reps=8: calls.append(dtype) or 1.0)
@@ -76,6 +77,7 @@ def test_the_probe_is_measured_once_per_process(monkeypatch, fresh_probe):
     assert calls == [torch.float32, torch.bfloat16]
 
 
+@pytest.mark.probe
 def test_native_bf16_check_matches_the_kernels_flags():
     flags = prec._cpuinfo_flags()
     if not flags:

@@ -41,7 +41,7 @@ def _assert_clean_failure(proc, tmp_path, *needles):
     assert len(errors) == 1, out
     for needle in needles:
         assert needle in errors[0], errors[0]
-    assert not (tmp_path / "data" / "office" / "prepared").exists()
+    assert not (tmp_path / "data" / "office").exists(), "not even an empty scene folder is left"
     assert not (tmp_path / "results" / "office" / "prepared.json").exists()
 
 

@@ -261,12 +261,10 @@ def _localize(args: argparse.Namespace) -> int:
         raise UsvcError(f"--max-error-px {args.max_error_px:g}: must be in (0, {MAX_ERROR_PX:g}] (px at a "
                         f"{REFERENCE_SHORT_SIDE} px short side; larger thresholds accept any pose)")
 
-    import cv2
     import torch
     from PIL import Image
     from tqdm import tqdm
 
-    from usvc.core.images import read_image_bgr
     from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
     threads.apply(args.threads)
@@ -294,11 +292,10 @@ def _localize(args: argparse.Namespace) -> int:
             if isinstance(found, _UnreadablePhoto):
                 raise found
             cam, source, note = found
-            try:
-                rgb = cv2.cvtColor(read_image_bgr(path), cv2.COLOR_BGR2RGB)
+            try:  # read as the relocalizer reads a path: EXIF orientation applied, huge JPEGs reduced
+                estimate = relocalizer.localize(path, cam, **({"intrinsics_source": note} if note else {}))
             except Image.DecompressionBombError as e:  # Pillow's own size check, should the header pass
                 raise UsvcError(f"image {path} is too large to decode ({e})") from None
-            estimate = relocalizer.localize(rgb, cam, **({"intrinsics_source": note} if note else {}))
         except UsvcError as err:
             errors += 1
             log.error("%s: %s", name, err)

@@ -29,10 +29,11 @@ FILM_LONG_SIDE_MM = 36.0  # 35 mm film (full frame) is 36 x 24 mm
 # FocalPlaneResolutionUnit -> millimetres; 2 (inch) is EXIF's default; 4 and 5 are TIFF/EP's.
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
 SWAPS_AXES = (5, 6, 7, 8)
-# Larger images are refused from their header, before anything is decoded: 100 MP is 300 MB of
-# 8-bit BGR (a 12000x8000 medium-format photo is 96 MP), and a tiny file can claim billions
-# (a "decompression bomb"). Pillow's own check warns above 89 MP and raises above 179 MP.
-MAX_IMAGE_PIXELS = 100_000_000
+# Larger images are refused from their header, before anything is decoded: no camera makes more
+# pixels in one shot (phone sensors reach 200 MP, medium format 150 MP), and a tiny file can claim
+# billions (a "decompression bomb"). Up to it, usvc.core.images decodes a photo in full up to
+# MAX_DECODE_PIXELS and a larger JPEG reduced, by the JPEG decoder's own scaling.
+MAX_IMAGE_PIXELS = 250_000_000
 _PIL_LIMIT_LOCK = threading.Lock()
 
 
@@ -52,17 +53,21 @@ def _header_size(path: Path) -> tuple[int, int] | None:
 
 def _too_large(path: Path, size: tuple[int, int] | None) -> SceneError:
     claim = f"is {size[0]}x{size[1]} = {size[0] * size[1] / 1e6:.0f} megapixels" if size else "claims more pixels"
-    return SceneError(f"image {path} {claim}, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} megapixel limit "
-                      f"(usvc.core.exif.MAX_IMAGE_PIXELS): downscale it, or is its header corrupt?")
+    return SceneError(f"image {path} {claim}, more than any camera makes (the {MAX_IMAGE_PIXELS / 1e6:.0f} "
+                      "megapixel limit, usvc.core.exif.MAX_IMAGE_PIXELS): downscale it, or is its header corrupt?")
 
 
 def open_checked(path: str | Path) -> Image.Image:
     """Pillow's lazy open (the header only) with the size limit applied; Pillow's own decoding
     errors pass through."""
     try:
-        with warnings.catch_warnings():
+        with _PIL_LIMIT_LOCK, warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our limit applies instead
-            img = Image.open(path)
+            limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, max(MAX_IMAGE_PIXELS, Image.MAX_IMAGE_PIXELS or 0)
+            try:
+                img = Image.open(path)  # the header only: nothing is decoded here
+            finally:
+                Image.MAX_IMAGE_PIXELS = limit
     except Image.DecompressionBombError:
         raise _too_large(Path(path), _header_size(Path(path))) from None
     w, h = img.size

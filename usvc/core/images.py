@@ -1,13 +1,17 @@
 """Decoding photos into pixels: uint8 BGR with the EXIF orientation applied, whatever the format
 (JPEG, PNG, TIFF, 16-bit or floating-point samples), refusing oversized or truncated files in one line.
 
-The header checks (the MAX_IMAGE_PIXELS limit, EXIF orientation) are :mod:`usvc.core.exif`'s.
+The header checks (the MAX_IMAGE_PIXELS limit of what a camera makes, EXIF orientation) are
+:mod:`usvc.core.exif`'s. A photo is decoded in full up to MAX_DECODE_PIXELS (300 MB of pixels);
+`read_photo` decodes a larger JPEG (a 108 MP phone photo) reduced by 2, 4 or 8, by the JPEG
+decoder's own scaling, and says by how much, so that its intrinsics can be scaled with it.
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -16,6 +20,24 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from usvc.core.errors import SceneError
 from usvc.core.exif import SWAPS_AXES, apply_orientation, open_checked, orientation_of, read_exif, stored_size
+
+MAX_DECODE_PIXELS = 100_000_000  # decoded in full up to this (300 MB of BGR); larger JPEGs reduced
+_REDUCED_FLAGS = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A decoded photo: `bgr` is the photo at 1/`reduction` of its `size` (width, height, EXIF
+    orientation applied); `reduction` is 1 for all but JPEGs over MAX_DECODE_PIXELS."""
+
+    bgr: np.ndarray
+    reduction: int
+    size: tuple[int, int]
+
+    def scale(self) -> tuple[float, float]:
+        """(x, y) factors from the photo's pixels to the decoded ones."""
+        h, w = self.bgr.shape[:2]
+        return w / self.size[0], h / self.size[1]
 
 
 @contextlib.contextmanager
@@ -103,6 +125,41 @@ def _to_bgr(pixels: np.ndarray, rgb: bool) -> np.ndarray:
     return np.ascontiguousarray(colour[..., ::-1] if rgb else colour)
 
 
+def _over_decode_limit(path: Path, size: tuple[int, int], what: str) -> SceneError:
+    return SceneError(f"image {path} is {size[0]}x{size[1]} = {size[0] * size[1] / 1e6:.0f} megapixels, more than "
+                      f"the {MAX_DECODE_PIXELS / 1e6:.0f} megapixels decoded in full, {what}")
+
+
+def read_photo(path: str | Path) -> Photo:
+    """The photo's pixels as `read_image_bgr` decodes them, except that a JPEG over MAX_DECODE_PIXELS
+    is decoded reduced (by the smallest of 2, 4 or 8 that brings it under the limit) instead of
+    refused; another format that large is refused in one line."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"image not found: {path}")
+    try:
+        with open_checked(path) as img:
+            orientation, fmt, stored = orientation_of(read_exif(img)), img.format, stored_size(img)
+    except (OSError, UnidentifiedImageError, ValueError):
+        bgr = read_image_bgr(path)  # OpenCV may still decode it
+        return Photo(bgr, 1, (bgr.shape[1], bgr.shape[0]))
+    size = stored[::-1] if orientation in SWAPS_AXES else stored
+    if size[0] * size[1] <= MAX_DECODE_PIXELS:
+        return Photo(read_image_bgr(path), 1, size)
+    if fmt != "JPEG":
+        raise _over_decode_limit(path, size, "and only JPEGs decode reduced: downscale it or save it as JPEG")
+    if not jpeg_is_complete(path.read_bytes()):
+        raise SceneError(f"cannot decode image {path}: truncated or corrupt JPEG (no end-of-image marker)")
+    reduction = next((k for k in (2, 4, 8) if size[0] * size[1] / (k * k) <= MAX_DECODE_PIXELS), None)
+    if reduction is None:
+        raise _over_decode_limit(path, size, "even reduced 8 times: downscale it")
+    with _quiet_opencv():
+        bgr = cv2.imread(str(path), _REDUCED_FLAGS[reduction] | cv2.IMREAD_IGNORE_ORIENTATION)
+    if bgr is None:
+        raise SceneError(f"cannot decode image {path} (a {size[0]}x{size[1]} JPEG, decoded reduced {reduction} times)")
+    return Photo(apply_orientation(bgr, orientation), reduction, size)
+
+
 def read_image_bgr(path: str | Path) -> np.ndarray:
     """uint8 HxWx3 BGR pixels with the EXIF orientation applied (the size oriented_size gives).
 
@@ -116,9 +173,12 @@ def read_image_bgr(path: str | Path) -> np.ndarray:
         raise SceneError(f"image not found: {path}")
     try:
         with open_checked(path) as img:
-            orientation, fmt = orientation_of(read_exif(img)), img.format
+            orientation, fmt, stored = orientation_of(read_exif(img)), img.format, stored_size(img)
     except (OSError, UnidentifiedImageError, ValueError):
-        orientation, fmt = 1, None  # OpenCV may still decode it
+        orientation, fmt, stored = 1, None, (0, 0)  # OpenCV may still decode it
+    if stored[0] * stored[1] > MAX_DECODE_PIXELS:
+        what = "read it with read_photo (JPEGs decode reduced)" if fmt == "JPEG" else "downscale it"
+        raise _over_decode_limit(path, stored, what)
     if fmt == "JPEG" and not jpeg_is_complete(path.read_bytes()):
         raise SceneError(f"cannot decode image {path}: truncated or corrupt JPEG (no end-of-image marker)")
     if fmt != "TIFF":

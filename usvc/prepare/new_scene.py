@@ -51,6 +51,7 @@ RESERVED_NAMES = {
 }
 LOCK_FILE = ".usvc-map.lock"  # in the checkout root, held while a scene is registered
 SHOWN_PROBLEMS = 3
+UNDISTORT_FOV = "crop"  # the scene config's undistort_fov (no black borders)
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ def _scene_yaml(source: Path, opts: NewSceneOptions) -> str:
             "defaults:\n  - base_scene\n  - _self_\n"
             f"name: {opts.name}\nformat: {opts.format}\npath: data/raw/{opts.name}\n"
             f"split: every_nth\nsplit_n: {opts.split_n}\nmetric_scale: {scale}\n"
-            f"working_width: {opts.working_width}\nundistort_fov: crop\ngenerated: false\n{exif}")
+            f"working_width: {opts.working_width}\nundistort_fov: {UNDISTORT_FOV}\ngenerated: false\n{exif}")
 
 
 def _params_with(text: str, params: Path, name: str) -> str:
@@ -229,8 +230,11 @@ def _scan_tree(source: Path) -> tuple[list[Path], list[Path]]:
 
 
 def _check_photos(scene, source: Path, opts: NewSceneOptions) -> None:
-    """Enough photos to map and to query, each readable and decodable in full."""
-    from usvc.core.images import read_image_bgr
+    """Enough photos to map and to query, cameras prepare will accept (focal lengths, distortion),
+    each photo readable, decodable in full and of its camera's size: what prepare refuses must be
+    refused before anything is registered."""
+    from usvc.core.undistort import check_image_size
+    from usvc.prepare.working_images import check_cameras, decoded
     from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES
 
     n = len(scene.frames)
@@ -245,9 +249,12 @@ def _check_photos(scene, source: Path, opts: NewSceneOptions) -> None:
     scene.check_images_exist()
     scene.split("train")
     scene.split("test")
+    check_cameras(scene.frames, UNDISTORT_FOV)
     widest = 0
     for i, frame in enumerate(scene.frames):
-        widest = max(widest, read_image_bgr(frame.image_path).shape[1])  # SceneError naming the photo
+        image, camera = decoded(frame)  # SceneError naming the photo
+        check_image_size(image, camera, str(frame.image_path))
+        widest = max(widest, frame.camera.width)
         if i and i % 50 == 0:
             log.info("checked %d of %d photos", i, n)
     if opts.working_width > widest:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -19,14 +20,20 @@ from tqdm import tqdm
 
 from usvc.core.artifact_names import SCENE_H5
 from usvc.core.errors import SceneError
-from usvc.core.images import read_image_bgr
-from usvc.core.scene import Frame, Scene
+from usvc.core.images import read_photo
+from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
 from usvc.sfm.posing import pose_scene
 from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
 
 log = logging.getLogger(__name__)
+
+# Field of view (degrees) a camera's given intrinsics may imply. Below the narrow end, across the
+# longer side, no photographic lens reaches (a 3,000 mm equivalent super-zoom sees about 0.7 deg);
+# beyond the wide end a pinhole (undistorted) model cannot image at all, so a wider view needs a
+# distortion model. Outside them the focal length is wrong (a unit mix-up, a field swapped).
+MIN_GIVEN_FOV_DEG, MAX_PINHOLE_FOV_DEG = 0.5, 170.0
 
 
 def working_size(width: int, height: int, working_width: int) -> tuple[int, int]:
@@ -76,13 +83,50 @@ def check_distinct_mapping_images(scene: str, contents: dict[str, list[str]]) ->
                 sum(len(n) - 1 for n in copies), example)
 
 
+def field_of_view_problem(camera: Camera) -> str:
+    """Why the camera's focal lengths cannot be a real camera's ("" when they can): a field of view
+    across the longer side under MIN_GIVEN_FOV_DEG, or one over MAX_PINHOLE_FOV_DEG along either
+    axis for a model without distortion."""
+    fovs = [(axis, size, focal, math.degrees(2.0 * math.atan(size / (2.0 * focal))))
+            for axis, size, focal in (("horizontal", camera.width, camera.focal[0]),
+                                      ("vertical", camera.height, camera.focal[1]))]
+    size = f"{camera.width}x{camera.height} images"
+    axis, _, focal, fov = fovs[0] if camera.width >= camera.height else fovs[1]
+    if fov < MIN_GIVEN_FOV_DEG:
+        return (f"focal length {focal:.6g} px for {size} implies a {fov:.3g} deg {axis} field of view, narrower "
+                f"than any camera's ({MIN_GIVEN_FOV_DEG:g} deg): check its unit and field")
+    for axis, _, focal, fov in fovs:
+        if fov > MAX_PINHOLE_FOV_DEG and not camera.has_distortion:
+            return (f"focal length {focal:.6g} px for {size} implies a {fov:.4g} deg {axis} field of view, wider "
+                    f"than a camera without lens distortion can see ({MAX_PINHOLE_FOV_DEG:g} deg): check its unit "
+                    "and field, or give the distortion model")
+    return ""
+
+
+def decoded(frame: Frame) -> tuple[np.ndarray, Camera]:
+    """The frame's photo and its camera at the decoded size: a JPEG over MAX_DECODE_PIXELS is
+    decoded reduced (usvc.core.images.read_photo), and its camera is scaled with it."""
+    photo = read_photo(frame.image_path)
+    if photo.reduction == 1:
+        return photo.bgr, frame.camera
+    h, w = photo.bgr.shape[:2]
+    if photo.size != (frame.camera.width, frame.camera.height):  # the size check names both
+        return photo.bgr, frame.camera
+    log.info("%s: %dx%d pixels, decoded at 1/%d", frame.image_path, *photo.size, photo.reduction)
+    return photo.bgr, frame.camera.scaled(w, h)
+
+
 def check_cameras(frames: list[Frame], undistort_fov: str) -> None:
-    """Every distinct camera's distortion, before any photo is decoded (errors name its photos)."""
+    """Every distinct camera's focal lengths and distortion, before any photo is decoded (errors
+    name its photos)."""
     photos: dict = {}
     for f in frames:
         photos.setdefault(f.camera, []).append(f.name)
     for camera, names in photos.items():
         more = f" and {len(names) - 1} more photo{'s' * (len(names) > 2)}" if len(names) > 1 else ""
+        why = field_of_view_problem(camera)
+        if why:
+            raise SceneError(f"the camera of {names[0]}{more}: {why}")
         check_distortion(camera, undistort_fov, where=f"{names[0]}{more}")
 
 
@@ -95,8 +139,7 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
     depths: list[np.ndarray | None] = []
     contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels
     for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
-        image, camera = undistort(read_image_bgr(frame.image_path), frame.camera, undistort_fov,
-                                  where=str(frame.image_path))
+        image, camera = undistort(*decoded(frame), undistort_fov, where=str(frame.image_path))
         depth = _read_depth(frame)
         if depth is not None and frame.camera.has_distortion:
             depth = cv2.resize(depth, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)

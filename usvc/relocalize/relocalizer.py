@@ -18,6 +18,7 @@ import torch
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
+from usvc.core.images import Photo, read_photo
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
@@ -175,6 +176,21 @@ class Relocalizer:
             raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
                             "(format version 1): rebuild them with the landmarks stage")
 
+    def _localize_reduced(self, photo: Photo, intrinsics: Intrinsics | None, intrinsics_source: str) -> PoseEstimate:
+        """A photo decoded reduced (over MAX_DECODE_PIXELS): its intrinsics, given for the photo's own
+        pixels, are scaled to the decoded ones, and the answer's camera back to the photo's."""
+        (w, h), (dw, dh) = photo.size, photo.bgr.shape[1::-1]
+        given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
+        found = self.localize(photo.bgr, None if given is None else given.scaled(dw, dh), channels="bgr",
+                              intrinsics_source=intrinsics_source)
+        if found.camera is not None:
+            found.camera = given if given is not None else found.camera.scaled(w, h)
+        note = (f"the photo is {w}x{h} = {w * h / 1e6:.0f} megapixels: localized from its pixels decoded at "
+                f"1/{photo.reduction} ({dw}x{dh})")
+        log.info("%s", note)
+        found.warnings.append(note)
+        return found
+
     def working_image(self, gray01: np.ndarray) -> tuple[np.ndarray, float]:
         """The image at the map's working short side, as its head was trained, and the resize factor."""
         if self.short_side and min(gray01.shape) != self.short_side:
@@ -220,6 +236,11 @@ class Relocalizer:
         point far off the centre, non-square pixels) are in ``warnings``."""
         if not isinstance(intrinsics_source, str):
             raise UsvcError(f"intrinsics_source must be a string, got {type(intrinsics_source).__name__}")
+        if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
+            photo = read_photo(image)
+            if photo.reduction > 1:
+                return self._localize_reduced(photo, intrinsics, intrinsics_source)
+            image, channels = photo.bgr, "bgr"
         t0 = time.perf_counter()
         gray = as_gray(image, channels)
         h, w = gray.shape
