@@ -19,6 +19,8 @@ from usvc.model.preprocess import normalise
 from usvc.prepare.importers import load_scene
 from usvc.prepare.working_images import prepare_scene
 
+pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
+
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):

@@ -11,6 +11,7 @@ two-view geometry.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,8 @@ from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import Relocalizer, RelocalizeOptions
 from usvc.relocalize.verified_matching import MIN_PAIR_INLIERS, mutual_ratio_matches, verified_matches
 from usvc.sfm.tracks_file import Tracks
+
+pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
 
 N_POINTS = 400
 META = {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"}
@@ -238,3 +241,25 @@ def test_the_fallback_registers_with_the_baselines_threshold():
     from usvc.sfm.posing import QUERY_MAX_ERROR_PX
 
     assert VERIFIED_MAX_ERROR_PX == QUERY_MAX_ERROR_PX
+
+
+def test_without_intrinsics_a_feature_pose_needs_a_focal_length_with_evidence(tmp_path: Path, monkeypatch):
+    """A photo without intrinsics whose features give no focal length (P4Pf finds none: a stretched
+    photo looks like this) is answered only where the map reads it well enough to give one; a
+    focal length from a map that barely agrees (7 % of the cells) is no ground for a pose."""
+    from test_refinement import PIXELS
+
+    landmarks, feats = scene()
+    monkeypatch.setattr(relocalizer_module, "estimate_focal_pose", lambda *a, **k: None)
+    right = backproject(PIXELS, R_TRUE, T_TRUE)
+    path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: right.reshape(15, 20, 3))
+    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), None)
+    assert est.success and est.confidence > 0.9, est.rejected  # the map's focal length, read from every cell
+    weak = np.random.default_rng(3).normal(0.0, 2.0, right.shape) + [0.0, 0.0, 3.0]
+    keep = np.random.default_rng(4).choice(len(right), 21, replace=False)
+    weak[keep] = right[keep]
+    monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: weak.reshape(15, 20, 3))
+    est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), None)
+    assert not est.success and "no focal length to trust" in est.rejected, est.rejected
+    assert "Give its intrinsics" in est.rejected and re.search(r"confidence 0\.0\d+ < min_confidence 0\.1", est.rejected)

@@ -233,17 +233,17 @@ def test_prepare_refuses_a_folding_camera_before_writing_anything(tmp_path: Path
 
 # --- 4. pose rows of other photos on a small capture ---------------------------------------------
 
-def forward_capture(tmp: Path, n: int = 12, size: tuple[int, int] = (480, 360), seed: int = 0
-                    ) -> tuple[Path, list[Frame]]:
-    """A forward-facing (LLFF-like) capture of n cameras on a 4x3 grid 10 cm apart, 4-7 m from the
-    points, written into a COLMAP database as keypoints (0.5 px noise) and verified matches."""
+def forward_capture(tmp: Path, n: int = 12, size: tuple[int, int] = (480, 360), seed: int = 0,
+                    spacing: float = 0.1) -> tuple[Path, list[Frame]]:
+    """A forward-facing (LLFF-like) capture of n cameras on a 4x3 grid `spacing` m apart, 3-7 m from
+    the points, written into a COLMAP database as keypoints (0.5 px noise) and verified matches."""
     rng = np.random.default_rng(seed)
     w, h = size
     cam = Camera("PINHOLE", w, h, (w * 0.83, w * 0.83, w / 2, h / 2))
     X = np.c_[rng.uniform(-2.5, 2.5, 600), rng.uniform(-1.8, 1.8, 600), rng.uniform(3.0, 7.0, 600)]
     frames = []
     for i in range(n):
-        c = np.array([0.1 * (i % 4), 0.1 * (i // 4), 0.0]) + rng.normal(0, 0.01, 3)
+        c = spacing * np.array([i % 4, i // 4, 0.0]) + rng.normal(0, 0.1 * spacing, 3)
         R = Rotation.from_rotvec(np.radians(rng.normal(0, 0.2, 3))).as_matrix()
         frames.append(Frame(f"{i:03d}.png", tmp / f"{i:03d}.png", cam, "train", R, -R @ c))
     db_path = tmp / "database.db"
@@ -283,6 +283,36 @@ def test_shuffled_pose_rows_on_a_small_capture_are_reported(tmp_path: Path, capl
     with caplog.at_level(logging.WARNING, logger="usvc"):
         assert warn_if_poses_disagree(wrong)
     assert "another order than the images" in caplog.text and "6.0 px" in caplog.text
+
+
+@pytest.mark.parametrize("a, b", [(0, 19), (1, 18), (5, 6)])
+def test_one_swapped_pair_of_poses_is_named(tmp_path: Path, caplog, a: int, b: int) -> None:
+    """Two photos' poses swapped on a 20-photo capture (0.3 m grid, 3-7 m from the scene): too few
+    pairs for the whole-capture rule, but most of those two photos' own pairs disagree, by several
+    thresholds, and they are named."""
+    db, frames = forward_capture(tmp_path, n=20, spacing=0.3)
+    assert pose_agreement(db, frames)["suspect_images"] == {}
+    swapped = list(frames)
+    swapped[a], swapped[b] = (replace(frames[a], R=frames[b].R, t=frames[b].t),
+                              replace(frames[b], R=frames[a].R, t=frames[a].t))
+    stats = pose_agreement(db, swapped)
+    assert not poses_disagree(stats)
+    assert sorted(stats["suspect_images"]) == [f"{a:03d}.png", f"{b:03d}.png"]
+    with caplog.at_level(logging.WARNING, logger="usvc"):
+        assert warn_if_poses_disagree(stats)
+    assert f"{a:03d}.png (" in caplog.text and f"{b:03d}.png (" in caplog.text and "swapped" in caplog.text
+
+
+def test_a_photo_whose_pairs_disagree_only_a_little_is_not_named(tmp_path: Path) -> None:
+    """Poses swapped between the far corners of a 0.1 m grid (0.5 m apart) move the epipolar lines by
+    about one threshold: as much as a loosely registered photo of a right capture (bird's worst), so
+    no photo is named."""
+    db, frames = forward_capture(tmp_path, n=20, spacing=0.1)
+    swapped = list(frames)
+    swapped[0], swapped[19] = replace(frames[0], R=frames[19].R, t=frames[19].t), replace(frames[19], R=frames[0].R,
+                                                                                          t=frames[0].t)
+    stats = pose_agreement(db, swapped)
+    assert stats["pairs_disagreeing"] > 0 and stats["suspect_images"] == {}
 
 
 def test_larger_images_get_a_larger_pair_threshold(tmp_path: Path) -> None:

@@ -33,6 +33,8 @@ from usvc.relocalize.query_input import camera_from_intrinsics
 from usvc.relocalize.camera_checks import implausible_focal, intrinsics_warnings, stretch_verdict
 from usvc.relocalize.relocalizer import Relocalizer
 
+pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
+
 CENTRED = Camera("SIMPLE_PINHOLE", 160, 120, (130.0, 80.0, 60.0))
 
 

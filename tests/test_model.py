@@ -22,6 +22,8 @@ from usvc.model.head import Head, Regressor, homogeneous_scale
 from usvc.model.map_file import load_map, save_map
 from usvc.model.preprocess import luma01, normalise, resize_to_short_side
 
+pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
+
 MODEL_DIR = Path(__file__).resolve().parents[1] / "usvc" / "model"
 
 

@@ -19,6 +19,8 @@ from usvc.pipeline.config import ConfigError, compose_for_script, validate
 from usvc.train.reprojection_loss import reprojection_loss
 from usvc.train.trainer import TrainOptions, heldout_fit, train_head
 
+pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
+
 REPO = Path(__file__).resolve().parents[1]
 PROBE = prec.cpu_bf16_speedup  # the cached function itself, whatever a test patches in its place
 

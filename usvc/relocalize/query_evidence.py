@@ -28,6 +28,7 @@ class QueryEvidence:
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
         self._global: tuple[np.ndarray, np.ndarray] | None = None
+        self.focal_estimated = False  # whether P4Pf on these correspondences gave the photo's focal length
         self._verified: VerifiedMatches | None = None
 
     def global_pairs(self) -> tuple[np.ndarray, np.ndarray]:

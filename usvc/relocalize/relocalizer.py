@@ -331,6 +331,9 @@ class Relocalizer:
                 given = full_camera
             feature, feature_rejected, full_camera, feature_evidence = self._features(full_gray, full_camera, result,
                                                                     intrinsics is not None, intrinsics_source)
+            if intrinsics is None and feature.success and not feature_rejected and not feature_evidence.focal_estimated \
+                    and not (camera is not None and result.num_inliers >= self.options.min_confidence * hc * wc):
+                feature_rejected = self._unsupported_focal(full_camera, result.num_inliers, hc * wc, camera is not None)
             if intrinsics is None and feature.success and not feature_rejected:
                 given = full_camera  # the focal length the features estimated with the pose
             if feature_rejected == FOCAL_UNOBSERVABLE:
@@ -401,6 +404,17 @@ class Relocalizer:
             return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
         return ""  # nothing contradicts the given focal length
 
+    def _unsupported_focal(self, camera: Camera, dense_inliers: int, cells: int, from_map: bool) -> str:
+        """Why a feature pose of a photo without intrinsics is no answer: its focal length came
+        neither from the photo's features (P4Pf) nor from a map that reads the photo (min_confidence
+        of the cells agreeing), so nothing supports the camera the pose was solved with."""
+        source = (f"the map's coordinates, which only {dense_inliers} of the {cells} cells agree with (confidence "
+                  f"{dense_inliers / cells:.3f} < min_confidence {self.options.min_confidence:g})" if from_map
+                  else "no evidence (the map's coordinates gave none)")
+        return (f"no focal length to trust: the one the pose was solved with ({camera.focal[0]:.4g} px) comes from "
+                f"{source}, and the photo's features give none: stretched, cropped or not of this place? Give its "
+                "intrinsics")
+
     def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
         """Why neither the map's coordinates nor the features gave a pose."""
         why = (f"no pose: RANSAC-PnP on the map's scene coordinates found none that min_inliers="
@@ -443,6 +457,7 @@ class Relocalizer:
                     return FeatureResult(None, None), stretched, full, evidence
                 camera = fp.camera
                 full = camera.scaled(full.width, full.height)
+                evidence.focal_estimated = True
                 prior = (fp.R, fp.t) if prior[0] is None else prior
                 break
         found = self._hypotheses(feats, camera, prior, opts, evidence)
