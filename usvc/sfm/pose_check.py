@@ -10,6 +10,7 @@ pairs they touch, which triangulation alone hides by dropping the points that di
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -68,8 +69,25 @@ def sampson_px(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1e-12))
 
 
-def pose_agreement(db_path: Path, frames: list[Frame]) -> dict:
-    """Per verified pair, the median Sampson distance of its matches under the given poses."""
+@dataclass(frozen=True)
+class PairCheck:
+    """One verified pair scored against poses: its photos, verified matches, the median Sampson
+    distance (px) of those matches to the poses' epipolar lines, and the pair's threshold (px)."""
+
+    a: str
+    b: str
+    matches: int
+    median_px: float
+    threshold_px: float
+
+    @property
+    def ratio(self) -> float:
+        """Median distance in thresholds (> 1: the pair disagrees with the poses)."""
+        return self.median_px / self.threshold_px
+
+
+def pair_checks(db_path: Path, frames: list[Frame]) -> list[PairCheck]:
+    """Every verified pair of posed frames with MIN_PAIR_MATCHES matches and a baseline, scored."""
     by_name = {f.name: f for f in frames}
     db = pycolmap.Database.open(db_path)
     try:
@@ -78,9 +96,7 @@ def pose_agreement(db_path: Path, frames: list[Frame]) -> dict:
         pair_ids, geometries = db.read_two_view_geometries()
     finally:
         db.close()
-    medians: list[float] = []
-    limits: list[float] = []
-    per_image: dict[str, list[float]] = {}  # each pair's median / threshold (> 1: it disagrees)
+    out = []
     for pair_id, geometry in zip(pair_ids, geometries):
         i, j = pycolmap.pair_id_to_image_pair(pair_id)
         matches = geometry.inlier_matches
@@ -90,10 +106,19 @@ def pose_agreement(db_path: Path, frames: list[Frame]) -> dict:
         if np.linalg.norm(a.center - b.center) < 1e-9:
             continue  # no baseline: no epipolar geometry to check
         d = float(np.median(sampson_px(_fundamental(a, b), keypoints[i][matches[:, 0]], keypoints[j][matches[:, 1]])))
-        medians.append(d)
-        limits.append(pair_threshold_px(a, b))
-        for name in (a.name, b.name):
-            per_image.setdefault(name, []).append(d / limits[-1])
+        out.append(PairCheck(a.name, b.name, len(matches), d, pair_threshold_px(a, b)))
+    return out
+
+
+def pose_agreement(db_path: Path, frames: list[Frame]) -> dict:
+    """Per verified pair, the median Sampson distance of its matches under the given poses."""
+    checks = pair_checks(db_path, frames)
+    medians = [c.median_px for c in checks]
+    limits = [c.threshold_px for c in checks]
+    per_image: dict[str, list[float]] = {}  # each pair's median / threshold (> 1: it disagrees)
+    for c in checks:
+        for name in (c.a, c.b):
+            per_image.setdefault(name, []).append(c.ratio)
     if not medians:
         return {"pairs": 0, "pairs_disagreeing": 0, "median_pair_epipolar_px": float("nan"),
                 "pair_threshold_px": float("nan"), "worst_images": [], "suspect_images": {}}

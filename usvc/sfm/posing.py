@@ -5,7 +5,9 @@ theirs enters the reconstruction (and so the map).
 The reconstruction's frame and scale become the scene's. Cameras come out calibrated (focal
 length and SIMPLE_RADIAL distortion refined by bundle adjustment); the prepare stage then
 undistorts the photos with them like any distorted capture. Photos that cannot be posed are
-reported with a one-line reason each, and a scene where fewer than half are posed is an error.
+reported with a one-line reason each, and a scene where fewer than half are posed is an error; so is
+a reconstruction whose strongly matching photo pairs contradict their poses (`registration_check`:
+a run of photos registered on the wrong side of a symmetric object).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from usvc.sfm.reconstruction import (
     match,
     pipeline_options,
 )
+from usvc.sfm.registration_check import check_registration
 
 log = logging.getLogger(__name__)
 
@@ -136,4 +139,5 @@ def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions,
     log.info("posed %s by SfM: %d of %d photos (%d mapping, %d query), %d points", scene.name, len(posed),
              len(frames), sum(f.split == "train" for f in posed), sum(f.split == "test" for f in posed),
              rec.num_points3D())
+    check_registration(db_path, posed, scene.name)  # a symmetric object's look-alike sides (doppelgangers)
     return replace(scene, frames=posed, pose_source="sfm"), missing
