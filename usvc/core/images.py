@@ -130,18 +130,26 @@ def _over_decode_limit(path: Path, size: tuple[int, int], what: str) -> SceneErr
                       f"the {MAX_DECODE_PIXELS / 1e6:.0f} megapixels decoded in full, {what}")
 
 
+def _header(path: Path) -> tuple[int, str | None, tuple[int, int]]:
+    """(EXIF orientation, Pillow's format name, stored size) from the header, refusing a missing
+    file and one over MAX_IMAGE_PIXELS; (1, None, (0, 0)) when Pillow cannot read the header."""
+    if not path.is_file():
+        raise SceneError(f"image not found: {path}")
+    try:
+        with open_checked(path) as img:
+            return orientation_of(read_exif(img)), img.format, stored_size(img)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return 1, None, (0, 0)
+
+
 def read_photo(path: str | Path) -> Photo:
     """The photo's pixels as `read_image_bgr` decodes them, except that a JPEG over MAX_DECODE_PIXELS
     is decoded reduced (by the smallest of 2, 4 or 8 that brings it under the limit) instead of
     refused; another format that large is refused in one line."""
     path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"image not found: {path}")
-    try:
-        with open_checked(path) as img:
-            orientation, fmt, stored = orientation_of(read_exif(img)), img.format, stored_size(img)
-    except (OSError, UnidentifiedImageError, ValueError):
-        bgr = read_image_bgr(path)  # OpenCV may still decode it
+    orientation, fmt, stored = _header(path)
+    if fmt is None:  # Pillow cannot read its header; OpenCV may still decode it
+        bgr = read_image_bgr(path)
         return Photo(bgr, 1, (bgr.shape[1], bgr.shape[0]))
     size = stored[::-1] if orientation in SWAPS_AXES else stored
     if size[0] * size[1] <= MAX_DECODE_PIXELS:
@@ -169,13 +177,7 @@ def read_image_bgr(path: str | Path) -> np.ndarray:
     their header; 16-bit samples are scaled to 8 bits (/257) and floating-point ones in 0..1 by 255.
     """
     path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"image not found: {path}")
-    try:
-        with open_checked(path) as img:
-            orientation, fmt, stored = orientation_of(read_exif(img)), img.format, stored_size(img)
-    except (OSError, UnidentifiedImageError, ValueError):
-        orientation, fmt, stored = 1, None, (0, 0)  # OpenCV may still decode it
+    orientation, fmt, stored = _header(path)
     if stored[0] * stored[1] > MAX_DECODE_PIXELS:
         what = "read it with read_photo (JPEGs decode reduced)" if fmt == "JPEG" else "downscale it"
         raise _over_decode_limit(path, stored, what)
