@@ -5,14 +5,14 @@ from usvc.pipeline.stage import Stage
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.run import Inputs, run
 
-stage = Stage("relocalize", model=ModelOptions, relocalize=RelocalizeOptions)
+stage = Stage("relocalize", torch_device=True, model=ModelOptions, relocalize=RelocalizeOptions)
 
 
 @stage.main
 def main(cfg, paths, out):
     inputs = Inputs(scene=paths.scene_file, map=paths.map_file, landmarks=paths.landmarks_file)
     return run(inputs, out, stage.options(cfg, "relocalize"), encoder_weights=stage.options(cfg, "model").encoder_weights,
-               seed=cfg.seed, scene=cfg.scene.name)
+               seed=cfg.seed, scene=cfg.scene.name, device=stage.device)
 
 
 if __name__ == "__main__":

@@ -5,14 +5,14 @@ from usvc.pipeline.stage import Stage
 from usvc.train.options import TrainOptions
 from usvc.train.run import Inputs, run
 
-stage = Stage("train", artifact="map", model=ModelOptions, train=TrainOptions)
+stage = Stage("train", artifact="map", torch_device=True, model=ModelOptions, train=TrainOptions)
 
 
 @stage.main
 def main(cfg, paths, out):
     inputs = Inputs(buffer=paths.buffer_file, holdout=paths.holdout_file, tracks=paths.tracks_file)
     return run(inputs, out, stage.options(cfg, "train"), stage.options(cfg, "model"), seed=cfg.seed,
-               scene=cfg.scene.name, method=cfg.method)
+               scene=cfg.scene.name, method=cfg.method, device=stage.device)
 
 
 if __name__ == "__main__":

@@ -109,6 +109,10 @@ def test_a_forced_rerun_leaves_the_lock_as_it_was(repo):
     assert (repo / "dvc.lock").read_text() == lock
     timing = json.loads((repo / "results/mini/metrics.timing.json").read_text())
     assert timing["seconds"] > 0 and "seconds" not in json.loads((repo / "results/mini/metrics.json").read_text())
+    for stage in ("train", "relocalize"):  # the torch device and its name: beside the timings, not in the lock
+        ran_on = json.loads((repo / f"results/mini/{stage}.timing.json").read_text())
+        assert ran_on["device"] in ("cpu", "cuda") and ran_on["device_name"]
+        assert "device" not in json.loads((repo / f"results/mini/{stage}.json").read_text())
 
 
 def test_relocalize_change_reruns_only_relocalize_and_metrics(repo):

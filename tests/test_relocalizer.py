@@ -296,7 +296,7 @@ def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
         Relocalizer(map_path, weights, RelocalizeOptions(backend="magic"))
     with pytest.raises(UsvcError, match="map_path must be the path of a map.pt, got NoneType"):
         Relocalizer(None)  # type: ignore[arg-type]
-    with pytest.raises(UsvcError, match="'banana' is not a torch device"):
+    with pytest.raises(UsvcError, match="device='banana' is not a torch device usvc runs on"):
         Relocalizer(map_path, weights, device="banana")
     if not torch.cuda.is_available():
         with pytest.raises(UsvcError, match="CUDA is not available"):

@@ -47,7 +47,7 @@ def _registered(stage: str) -> set[str]:
     tree = ast.parse((REPO / (_module(stage).replace(".", "/") + ".py")).read_text())
     calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Stage"]
     assert len(calls) == 1, f"{stage}: one Stage(...) call expected"
-    return {k.arg for k in calls[0].keywords} - {"artifact", "record"}
+    return {k.arg for k in calls[0].keywords} - {"artifact", "record", "torch_device"}
 
 
 def _read_untyped(stage: str) -> set[str]:

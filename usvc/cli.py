@@ -261,15 +261,14 @@ def _localize(args: argparse.Namespace) -> int:
         raise UsvcError(f"--max-error-px {args.max_error_px:g}: must be in (0, {MAX_ERROR_PX:g}] (px at a "
                         f"{REFERENCE_SHORT_SIDE} px short side; larger thresholds accept any pose)")
 
-    import torch
     from PIL import Image
     from tqdm import tqdm
 
+    from usvc.relocalize.query_input import check_device
     from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
     threads.apply(args.threads)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise UsvcError(f"--device {args.device}: CUDA is not available to this torch build")
+    device = check_device(args.device)
     refine = "none" if args.no_refine else args.refine
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
                                 prior=args.prior, precision=args.precision)
@@ -281,7 +280,7 @@ def _localize(args: argparse.Namespace) -> int:
         if args.focal_tolerance < 0:
             raise UsvcError(f"--focal-tolerance {args.focal_tolerance:g}: must be >= 0 (0: no check)")
         options = replace(options, focal_tolerance=args.focal_tolerance)
-    relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=args.device, landmarks=args.landmarks)
+    relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=device, landmarks=args.landmarks)
     records: list[dict[str, Any]] = []
     posed: list[Posed] = []
     bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
@@ -395,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "evidence alone (needs landmarks with observations)")
     loc.add_argument("--landmarks", help="the map's landmarks.h5 (default: found beside the map: landmarks.h5 in "
                                          "its folder, else ../landmarks/landmarks.h5)")
-    loc.add_argument("--device", default="cpu")
+    loc.add_argument("--device", default="auto", help="torch device: auto (CUDA where torch sees one) | cpu | cuda | cuda:N")
     loc.add_argument("--precision", choices=PRECISIONS, default="auto",
                      help="the network's products: auto = bf16 where the device runs it natively and faster, "
                           "else fp32 (any map runs at either)")

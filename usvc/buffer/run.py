@@ -29,8 +29,9 @@ class Inputs:
     render: Path  # the rendered views (render/render.h5), read when buffer.rendered_views is true
 
 
-def run(inputs: Inputs, out: Path, options: BufferOptions, model: ModelOptions, *, seed: int) -> dict:
-    """Fill the buffer with `model`'s encoder into `out`; returns its figures."""
+def run(inputs: Inputs, out: Path, options: BufferOptions, model: ModelOptions, *, seed: int,
+        device: str = "cpu") -> dict:
+    """Fill the buffer with `model`'s encoder (run on `device`) into `out`; returns its figures."""
     scene = read_scene_h5(inputs.scene)
     frames, holdout = holdout_split(scene.split("train"), options.holdout_every)
     index = {f.name: i for i, f in enumerate(scene.frames)}
@@ -46,9 +47,9 @@ def run(inputs: Inputs, out: Path, options: BufferOptions, model: ModelOptions, 
                                     model.max_short_side)
     buf = fill_buffer(frames, encoder, options, short_side, seed=seed, keypoints=keypoints,
                       depths=depths if any(d is not None for d in depths) else None,
-                      mapping_images=len(frames) - n_rendered)
+                      mapping_images=len(frames) - n_rendered, device=device)
     # Held-out mapping images, unaugmented: training measures its held-out fit on them (train.validate_every).
-    heldout = fill_heldout(holdout, encoder, options, short_side, seed=seed) if holdout else None
+    heldout = fill_heldout(holdout, encoder, options, short_side, seed=seed, device=device) if holdout else None
     attrs = {"short_side": short_side, "encoder_file": weights.name, "encoder_fingerprint": encoder_fingerprint(encoder)}
     write_buffer(out / BUFFER_H5, buf, **attrs)
     if heldout is not None:

@@ -42,14 +42,13 @@ def ply_reload_difference(ply: Path, model: Gaussians, image: FitImage, tile: in
     return float(np.abs((a - b).numpy()).max())
 
 
-def run(inputs: Inputs, out: Path, options: GaussiansOptions) -> dict:
-    """Fit the model (on the GPU when there is one) and write it into `out`; returns its figures."""
+def run(inputs: Inputs, out: Path, options: GaussiansOptions, *, device: str = "cpu") -> dict:
+    """Fit the model on `device` and write it into `out`; returns its figures."""
     tracks = read_tracks(inputs.tracks)
     images = load_fit_images(read_scene_h5(inputs.scene).split("train"), options.width)
     init = initial_gaussians(tracks, options.sh_degree, options.initial_opacity)
     log.info("gaussians: fitting %d initial Gaussians to %d images at %dx%d, %d iterations", len(init), len(images),
              images[0].view.width, images[0].view.height, options.iterations)
-    device = "cuda" if torch.cuda.is_available() else "cpu"
     result = fit_gaussians(init, images, options, device=device)
     _, held = split_holdout(images, options.holdout_every)
     check = held[0] if held else images[0]
@@ -59,7 +58,7 @@ def run(inputs: Inputs, out: Path, options: GaussiansOptions) -> dict:
         pred = render(result.gaussians, check.view, tile=options.tile).rgb.clamp(0, 1).numpy()
     side = np.concatenate([pred, check.rgb.numpy()], axis=1)
     cv2.imwrite(str(out / SPLAT_CHECK_PNG), (side[..., ::-1] * 255).round().astype(np.uint8))
-    stats = {"computed": True, **result.metrics, "device": device,
+    stats = {"computed": True, **result.metrics,
              "ply_megabytes": (out / SPLAT_PLY).stat().st_size / 2**20, "ply_reload_max_abs_diff": reload_diff,
              "seed": options.seed}
     log.info("gaussians: %d Gaussians, held-out PSNR %.2f dB, SSIM %.3f, fit %.0f s", stats["gaussians"],

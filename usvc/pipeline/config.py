@@ -32,6 +32,7 @@ class ConfigError(UsvcError):
 class Config:
     seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
     threads: str = "auto"  # torch/OpenCV/COLMAP/BLAS threads: auto (cores / jobs side by side) or a number
+    device: str = "auto"  # torch's device for the stages that run it: auto (CUDA where torch sees one) | cpu | cuda | cuda:N
     method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
     data_dir: str = "data"  # where the artifacts go: <data_dir>/<scene>/<stage>
     results_dir: str = "results"  # where the metrics and plots go: <results_dir>/<scene>/
@@ -50,7 +51,7 @@ class Config:
 
 
 METHODS = ("single", "multiview", "multiview_gs")
-TOP_LEVEL = ("seed", "threads", "method", "data_dir", "results_dir")
+TOP_LEVEL = ("seed", "threads", "device", "method", "data_dir", "results_dir")
 
 # Each config group's schema: the options dataclass of its step, beside the step's code. Named, not
 # imported: a stage imports the ones it reads (tools and tests load them all with `group_schemas`).
@@ -155,6 +156,10 @@ def validate(cfg: Any, schemas: dict[str, type] | None = None) -> None:
         resolve(cfg.threads)
     except ValueError as err:
         raise ConfigError(f"config key {err}") from None
+    from usvc.core.device import device_problem
+
+    if device_problem(cfg.device):
+        raise ConfigError(f"config key {device_problem(cfg.device)}")
 
 
 def compose_for_script(scene: str, overrides: list[str]) -> Any:

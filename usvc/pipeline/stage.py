@@ -31,6 +31,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from usvc.core.atomic import atomic_dir
+from usvc.core.device import device_record, resolve_device
 from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
 from usvc.pipeline.config import group_options, register_configs, validate
@@ -78,15 +79,20 @@ def skipped_without_rendered_views(out: Path, stage: str, method: str) -> dict[s
 class Stage:
     """One pipeline stage: its name, the config groups it reads, the artifact folder it writes."""
 
-    def __init__(self, name: str, artifact: str | None = "", record: str = "", **schemas: type) -> None:
+    def __init__(self, name: str, artifact: str | None = "", record: str = "", torch_device: bool = False,
+                 **schemas: type) -> None:
         """`artifact`: the ScenePaths folder it writes ("" = the stage's name; None = none: the
         step writes where its options say, e.g. generate); `record`: the name of its
-        results/<scene>/<record>.json ("" = the stage's name); `schemas`: group -> options dataclass."""
+        results/<scene>/<record>.json ("" = the stage's name); `torch_device`: the step runs torch
+        on `device=` (resolved before the step, recorded with its timings); `schemas`: group ->
+        options dataclass."""
         self.name = name
         self.artifact = name if artifact == "" else artifact
         self.record = record or name
         self.schemas = register_configs(schemas)
+        self.torch_device = torch_device
         self.threads = -1  # the thread count the shell applied (from `threads=`), once it runs
+        self.device = "cpu"  # the torch device the shell resolved (from `device=`), once it runs
 
     def options(self, cfg: DictConfig, group: str) -> Any:
         """The options object of one of the groups this stage reads."""
@@ -108,11 +114,17 @@ class Stage:
         verbose = log.isEnabledFor(logging.DEBUG) or ("sfm" in self.schemas and bool(cfg.sfm.verbose))
         quiet_third_party(verbose=verbose)
         log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
+        ran_on = {}
+        if self.torch_device:
+            self.device = resolve_device(cfg.device)
+            ran_on = device_record(self.device)
+            log.debug("device: %s (%s)", self.device, ran_on["device_name"])
         out, record = self.outputs(cfg)
         t0 = time.perf_counter()
         with atomic_dir(out) if out is not None else nullcontext(None) as tmp:
             stats = fn(cfg, scene_paths(cfg), tmp) or {}
-        write_json(record, {**stats, "seconds": time.perf_counter() - t0, "peak_memory_mb": peak_memory_mb()})
+        write_json(record, {**stats, **ran_on, "seconds": time.perf_counter() - t0,
+                            "peak_memory_mb": peak_memory_mb()})
 
     def main(self, fn: StepFn) -> Callable[[], None]:
         """The stage's entry point: `--help` prints the options it reads; otherwise Hydra composes

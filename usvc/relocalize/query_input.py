@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from usvc.core.device import DEVICE_CHOICES, device_problem, resolve_device
 from usvc.core.errors import UsvcError
 from usvc.core.images import read_image_bgr
 from usvc.core.scene import Camera
@@ -68,12 +69,7 @@ def as_gray(image: np.ndarray | str | Path, channels: str = "rgb") -> np.ndarray
 
 
 def check_device(device: str) -> str:
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise UsvcError(f"device={device!r} is not a torch device (e.g. 'cpu', 'cuda', 'cuda:1')") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UsvcError(f"device={device!r}: CUDA is not available on this machine (use device='cpu')")
-    if dev.type not in ("cpu", "cuda"):
-        raise UsvcError(f"device={device!r}: usvc runs on 'cpu' or 'cuda'")
-    return device
+    """The torch device to run on (`auto`: CUDA where torch sees one), checked (usvc.core.device)."""
+    if not isinstance(device, str) or device_problem(device):
+        raise UsvcError(f"device={device!r} is not a torch device usvc runs on ({DEVICE_CHOICES})")
+    return resolve_device(device)

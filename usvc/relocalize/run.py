@@ -25,14 +25,15 @@ class Inputs:
 
 
 def run(inputs: Inputs, out: Path, options: RelocalizeOptions, *, encoder_weights: str | None, seed: int,
-        scene: str) -> dict:
-    """Relocalize the queries of `scene` into `out`; returns the step's figures and timings."""
+        scene: str, device: str = "cpu") -> dict:
+    """Relocalize the queries of `scene` (the network on `device`) into `out`; returns the step's
+    figures and timings."""
     frames = read_scene_h5(inputs.scene).split("test")
     mapped = read_map_header(inputs.map)["metadata"].get("scene")
     if scene != mapped:
         raise UsvcError(f"{inputs.map} is a map of scene {mapped!r}, not of {scene!r}: "
                         "rerun the train stage for this scene")
-    relocalizer = Relocalizer(inputs.map, encoder_weights, options, seed=seed,
+    relocalizer = Relocalizer(inputs.map, encoder_weights, options, device=device, seed=seed,
                               landmarks=inputs.landmarks if options.refine == "features" else None)
     results = relocalize_frames(relocalizer, frames)
     stats = write_results(out, frames, results)

@@ -44,8 +44,8 @@ def focal_range(K: np.ndarray) -> list[float]:
 
 
 def run(inputs: Inputs, out: Path, options: TrainOptions, model: ModelOptions, *, seed: int, scene: str,
-        method: str) -> dict:
-    """Train the head and write the map of `scene` into `out`; returns the training figures."""
+        method: str, device: str = "cpu") -> dict:
+    """Train the head (on `device`) and write the map of `scene` into `out`; returns the training figures."""
     # Every input is read and checked before the long step: the encoder the map will carry must
     # be the one whose features fill the buffer.
     encoder, weights = load_configured_encoder(model.encoder_width, model.encoder_weights, model.encoder)
@@ -56,7 +56,7 @@ def run(inputs: Inputs, out: Path, options: TrainOptions, model: ModelOptions, *
     tracks = read_tracks(inputs.tracks)
     median_depth = read_median_depth(inputs.tracks)
     head, summary = train_head(buf, median_depth, options, head_width=model.head_width,
-                               head_blocks=model.head_blocks, seed=seed, heldout=heldout)
+                               head_blocks=model.head_blocks, seed=seed, heldout=heldout, device=device)
     metadata = {"scene": scene, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": model.name, "method": method,
                 "train": asdict(options), "precision": summary["precision"], "seed": seed,
