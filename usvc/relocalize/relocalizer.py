@@ -103,7 +103,7 @@ class Relocalizer:
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
-                 options: RelocalizeOptions | None = None, device: str = "cpu", seed: int = 0,
+                 options: RelocalizeOptions | None = None, device: str = "auto", seed: int = 0,
                  landmarks: str | Path | None = None) -> None:
         """`landmarks`: the map's landmarks.h5 for refine=features; None finds it beside the map
         (`landmarks.h5` in the map's folder, else `../landmarks/landmarks.h5` as the pipeline writes it)."""
