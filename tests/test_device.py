@@ -64,7 +64,13 @@ def test_cuda_where_there_is_none_stops_a_torch_stage_in_one_line(stage, tmp_pat
 def test_the_torch_stages_and_only_they_resolve_the_device(monkeypatch):
     import importlib
 
+    from usvc.pipeline.config import register_configs
+
     monkeypatch.syspath_prepend(str(REPO))
-    for name in ("prepare", "sfm", "keypoints", "landmarks", "metrics", "buffer", "train", "relocalize", "gaussians"):
-        stage = importlib.import_module(f"stages.{name}").stage
-        assert stage.torch_device == (name in ("buffer", "train", "relocalize", "gaussians")), name
+    try:
+        for name in ("prepare", "sfm", "keypoints", "landmarks", "metrics", "buffer", "train", "relocalize",
+                     "gaussians"):
+            stage = importlib.import_module(f"stages.{name}").stage
+            assert stage.torch_device == (name in ("buffer", "train", "relocalize", "gaussians")), name
+    finally:
+        register_configs()  # a stage registers only its own groups' schemas: every group typed again for the others
