@@ -261,7 +261,6 @@ def _localize(args: argparse.Namespace) -> int:
         raise UsvcError(f"--max-error-px {args.max_error_px:g}: must be in (0, {MAX_ERROR_PX:g}] (px at a "
                         f"{REFERENCE_SHORT_SIDE} px short side; larger thresholds accept any pose)")
 
-    from PIL import Image
     from tqdm import tqdm
 
     from usvc.relocalize.query_input import check_device
@@ -291,10 +290,8 @@ def _localize(args: argparse.Namespace) -> int:
             if isinstance(found, _UnreadablePhoto):
                 raise found
             cam, source, note = found
-            try:  # read as the relocalizer reads a path: EXIF orientation applied, huge JPEGs reduced
-                estimate = relocalizer.localize(path, cam, **({"intrinsics_source": note} if note else {}))
-            except Image.DecompressionBombError as e:  # Pillow's own size check, should the header pass
-                raise UsvcError(f"image {path} is too large to decode ({e})") from None
+            # read as the relocalizer reads a path: EXIF orientation applied, huge JPEGs reduced
+            estimate = relocalizer.localize(path, cam, **({"intrinsics_source": note} if note else {}))
         except UsvcError as err:
             errors += 1
             log.error("%s: %s", name, err)
