@@ -30,3 +30,8 @@ def camera_centers(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     return -np.einsum("...ji,...j->...i", R, t)
+
+
+def field_of_view_deg(focal: float, side: float) -> float:
+    """The field of view (degrees) across an image side of `side` px seen with a `focal` px focal length."""
+    return float(np.degrees(2.0 * np.arctan2(side / 2.0, focal)))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -20,6 +19,7 @@ from tqdm import tqdm
 
 from usvc.core.artifact_names import SCENE_H5
 from usvc.core.errors import SceneError
+from usvc.core.geometry import field_of_view_deg
 from usvc.core.images import read_photo
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5, write_scene_h5
@@ -87,7 +87,7 @@ def field_of_view_problem(camera: Camera) -> str:
     """Why the camera's focal lengths cannot be a real camera's ("" when they can): a field of view
     across the longer side under MIN_GIVEN_FOV_DEG, or one over MAX_PINHOLE_FOV_DEG along either
     axis for a model without distortion."""
-    fovs = [(axis, size, focal, math.degrees(2.0 * math.atan(size / (2.0 * focal))))
+    fovs = [(axis, size, focal, field_of_view_deg(focal, size))
             for axis, size, focal in (("horizontal", camera.width, camera.focal[0]),
                                       ("vertical", camera.height, camera.focal[1]))]
     size = f"{camera.width}x{camera.height} images"

@@ -8,6 +8,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from usvc.core.geometry import field_of_view_deg
 from usvc.core.scene import Camera
 from usvc.relocalize.pnp import project_points, reprojection_inliers
 
@@ -22,10 +23,6 @@ PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size
 # The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
 # still explains this fraction of its inliers (a shallow view: distance trades for focal length).
 FOCAL_OBSERVABLE_FRACTION = 0.8
-
-
-def field_of_view_deg(focal: float, long_side: int) -> float:
-    return float(np.degrees(2.0 * np.arctan2(long_side / 2.0, focal)))
 
 
 def implausible_focal(focal: float, width: int, height: int, what: str) -> str:

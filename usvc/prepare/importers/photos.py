@@ -17,11 +17,11 @@ hidden files (``.DS_Store``) are left out of it.
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 
 from usvc.core.errors import SceneError
 from usvc.core.exif import exif_focal_px
+from usvc.core.geometry import field_of_view_deg
 from usvc.core.scene import Scene
 from usvc.prepare.importers.common import (
     IMAGE_SUFFIXES,
@@ -78,7 +78,7 @@ def _warn_skipped(name: str, folder: Path, skipped: dict[str, str], n_photos: in
 def check_exif_focal(path: Path, focal_px: float, w: int, h: int) -> None:
     """Refuse an EXIF focal length whose field of view (across the longer side) no camera has."""
     long_side = max(w, h)
-    fov = math.degrees(2.0 * math.atan(long_side / (2.0 * focal_px)))
+    fov = field_of_view_deg(focal_px, long_side)
     if MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
         return
     f35 = focal_px * FILM_LONG_SIDE_MM / long_side
