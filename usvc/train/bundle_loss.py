@@ -51,14 +51,20 @@ def _squared(pred: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor, t: torch
 def bundle_loss(pred: torch.Tensor, group_sizes: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor,
                 t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float, *, form: str,
                 depth_min: float, depth_max: float, invalid_depth: float,
-                max_reproj: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                max_reproj: float,
+                pairs: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean pair loss over the groups. Observation rows (pred, pixels, and their view's R, t, K)
     are laid out group after group, `group_sizes` long each. `form` and the bounds come from
-    `TrainOptions` through the trainer (as in `reprojection_loss`); none has a default here."""
+    `TrainOptions` through the trainer (as in `reprojection_loss`); none has a default here.
+    `pairs`: `group_pairs(group_sizes)` already on pred's device (the trainer draws them on the
+    host a block at a time, so that the step reads nothing back from the device)."""
     if form not in FORMS:
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
-    a, b = group_pairs(group_sizes.cpu())
-    a, b = a.to(pred.device), b.to(pred.device)
+    if pairs is None:
+        a, b = group_pairs(group_sizes.cpu())
+        a, b = a.to(pred.device), b.to(pred.device)
+    else:
+        a, b = pairs
     # index_select, not pred[a]: every observation appears in many pairs, and on CPU the gradient
     # of advanced indexing adds repeated rows in thread-timing order (different bits every run);
     # index_select's gradient adds them in index order.

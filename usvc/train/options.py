@@ -38,13 +38,14 @@ class TrainOptions:
     bundle_groups_per_batch: int = 64  # whole keypoint groups mixed into every batch of pixel samples
     bundle_obs_per_group: int = 16  # observations drawn per group (all of them when fewer)
     precision: str = "auto"  # the head's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
+    report_every: int = 100  # steps between reads of the statistics from the device (progress, divergence check); none in between
     validate_every: int = 500  # held-out reprojection every this many steps, when the buffer has held-out views (buffer.holdout_every > 0); 0 = never
 
     def problems(self) -> list[str]:
         out = one_of(self, "optimizer", OPTIMIZERS) + one_of(self, "schedule", SCHEDULES)
         out += one_of(self, "bundle_loss", BUNDLE_FORMS) + one_of(self, "precision", PRECISIONS)
         out += non_negative(self, "validate_every", "iterations")
-        out += positive(self, "passes", "batch_size", "lr", "reproj_weight", "bundle_groups_per_batch",
+        out += positive(self, "passes", "batch_size", "report_every", "lr", "reproj_weight", "bundle_groups_per_batch",
                         "bundle_obs_per_group")
         out += in_range(self, "warmup_fraction", 0.0, 1.0, high_open=True)
         if self.passes == float("inf"):

@@ -7,9 +7,11 @@ so one configuration serves metric scenes and scenes in arbitrary SfM units alik
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from dataclasses import replace
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -64,9 +66,11 @@ def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: floa
             "within_10px": float((err <= 10.0).mean())}
 
 
-def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
+def _optimizer(opts: TrainOptions, params, device: str) -> tuple[torch.optim.Optimizer, Any]:
     if opts.optimizer == "adamw":
-        optim: torch.optim.Optimizer = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+        # One fused kernel per step on CUDA; the CPU keeps torch's default (the same bits as ever).
+        fused = {"fused": True} if device.startswith("cuda") else {}
+        optim: torch.optim.Optimizer = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay, **fused)
     else:
         optim = AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
     if opts.schedule == "one_cycle":
@@ -75,6 +79,102 @@ def _optimizer(opts: TrainOptions, params) -> tuple[torch.optim.Optimizer, Any]:
     else:
         sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
     return optim, sched
+
+
+def read_back(values: torch.Tensor) -> np.ndarray:
+    """The one way the training loop reads the device: every `report_every` steps, the block's
+    statistics at once (one synchronisation per block, none per step)."""
+    return values.detach().cpu().numpy()
+
+
+@dataclass
+class _Block:
+    """A block of training steps drawn on the host and sent to the device in one copy each: the
+    pixel samples' buffer rows, and for the bundle loss the keypoint observation rows, the group
+    sizes and the (a, b) pairs, with each step's offsets into them (host integers)."""
+
+    idx: torch.Tensor  # (steps, batch) buffer rows
+    rows: torch.Tensor | None = None  # keypoint observation rows, step after step
+    sizes: torch.Tensor | None = None  # group sizes, step after step
+    pair_a: torch.Tensor | None = None  # pairs within each step's rows, step after step
+    pair_b: torch.Tensor | None = None
+    row_at: list[int] = field(default_factory=list)  # step k's rows are rows[row_at[k]:row_at[k + 1]]
+    size_at: list[int] = field(default_factory=list)
+    pair_at: list[int] = field(default_factory=list)
+
+
+def _pairs(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`bundle_loss.group_pairs` on the host, in numpy (the same pairs in the same order)."""
+    starts = np.cumsum(sizes) - sizes
+    group = np.repeat(np.arange(len(sizes)), sizes * sizes)
+    local = np.arange(int((sizes * sizes).sum())) - np.repeat(np.cumsum(sizes * sizes) - sizes * sizes, sizes * sizes)
+    n = sizes[group]
+    return starts[group] + local // n, starts[group] + local % n
+
+
+def _to_device(array: np.ndarray | torch.Tensor, device: str) -> torch.Tensor:
+    """Host indices to the device in one copy that does not wait for the queued steps (pinned)."""
+    t = torch.as_tensor(array)
+    if device.startswith("cuda"):
+        return t.pin_memory().to(device, non_blocking=True)  # no wait for the queued steps
+    return t
+
+
+class _BatchDraw:
+    """The batches, drawn on the host from the seed (the same draws whatever the device): a fresh
+    permutation of the buffer every pass, and the keypoint groups of the bundle loss."""
+
+    def __init__(self, n: int, batch_size: int, gen: torch.Generator, sampler: GroupSampler | None) -> None:
+        self.n, self.batch_size, self.gen, self.sampler = n, batch_size, gen, sampler
+        self.order = torch.randperm(n, generator=gen)
+        self.cursor = 0
+
+    def block(self, steps: int, device: str) -> _Block:
+        idx = []
+        for _ in range(steps):
+            if self.cursor + self.batch_size > self.n:
+                self.order, self.cursor = torch.randperm(self.n, generator=self.gen), 0
+            idx.append(self.order[self.cursor:self.cursor + self.batch_size])
+            self.cursor += self.batch_size
+        block = _Block(idx=_to_device(torch.stack(idx), device))
+        if self.sampler is None:
+            return block
+        rows, sizes, pa, pb = [], [], [], []
+        for _ in range(steps):
+            r, s = self.sampler.next()
+            a, b = _pairs(s)
+            rows.append(r)
+            sizes.append(s)
+            pa.append(a)
+            pb.append(b)
+        block.row_at = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).tolist()
+        block.size_at = np.concatenate([[0], np.cumsum([len(s) for s in sizes])]).tolist()
+        block.pair_at = np.concatenate([[0], np.cumsum([len(a) for a in pa])]).tolist()
+        block.rows = _to_device(np.concatenate(rows).astype(np.int64), device)
+        block.sizes = _to_device(np.concatenate(sizes).astype(np.int64), device)
+        block.pair_a = _to_device(np.concatenate(pa).astype(np.int64), device)
+        block.pair_b = _to_device(np.concatenate(pb).astype(np.int64), device)
+        return block
+
+
+@contextlib.contextmanager
+def _deterministic(device: str) -> Iterator[None]:
+    """Same seed and device, same map: on CUDA, torch's deterministic kernels (the bundle loss's
+    gradient adds repeated rows; atomics would add them in any order). The CPU's are already."""
+    if not device.startswith("cuda"):
+        yield
+        return
+    before, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before, warn_only=warn_only)
+
+
+# Columns of the per-step statistics kept on the device: total loss, pixel loss, valid fraction,
+# median reprojection, bundle loss, bundle median reprojection.
+_TOTAL, _PIX, _VALID, _PX, _BUNDLE, _BUNDLE_PX = range(6)
 
 
 def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, head_width: int,
@@ -86,7 +186,12 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     `opts.precision` (resolved for `device`; the statistics say which); the losses, master weights
     and optimizer state stay fp32. With `heldout` (cells of mapping images the buffer withheld) and
     `opts.validate_every`, the statistics carry the held-out fit over training; it reads the head
-    only, so the trained head is the same with or without it."""
+    only, so the trained head is the same with or without it.
+
+    The buffer and the per-view cameras go to `device` once; batches are drawn on the host a block
+    of `opts.report_every` steps at a time (the same draws on every device) and sent in one copy;
+    the loop reads nothing back from the device but each block's statistics (`read_back`), where
+    the divergence check and the progress bar look."""
     check(opts, "train")
     precision = resolve_precision(opts.precision, device)
     if not (np.isfinite(median_depth) and median_depth > 0):
@@ -112,104 +217,109 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     head.set_scene_center(mapping_center(buf))
     head.to(device).train()
 
-    feats = torch.from_numpy(buf.features)  # fp16; batches are cast on the fly
-    pixels = torch.from_numpy(buf.pixels).float()
-    view = torch.from_numpy(buf.view_index.astype(np.int64))
-    Rv = torch.from_numpy(buf.view_R).float()
-    tv = torch.from_numpy(buf.view_t).float()
-    Kv = torch.from_numpy(buf.view_K).float()
-    Kinv = torch.linalg.inv(Kv)
+    # Once, to the device (no copy on the CPU): features stay fp16 there and batches are cast.
+    feats = torch.from_numpy(buf.features).to(device)
+    pixels = torch.from_numpy(buf.pixels).float().to(device)
+    view = torch.from_numpy(buf.view_index.astype(np.int64)).to(device)
+    Kv_host = torch.from_numpy(buf.view_K).float()
+    Rv = torch.from_numpy(buf.view_R).float().to(device)
+    tv = torch.from_numpy(buf.view_t).float().to(device)
+    Kv, Kinv = Kv_host.to(device), torch.linalg.inv(Kv_host).to(device)
+    if sampler is not None:
+        kp_feats = torch.from_numpy(buf.kp_features).to(device)
+        kp_pixels = torch.from_numpy(buf.kp_pixels).float().to(device)
+        kp_view = torch.from_numpy(buf.kp_view.astype(np.int64)).to(device)
     depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
     invalid_depth = opts.invalid_depth_rel * median_depth
 
-    if sampler is not None:
-        kp_feats = torch.from_numpy(buf.kp_features)
-        kp_pixels = torch.from_numpy(buf.kp_pixels).float()
-        kp_view = torch.from_numpy(buf.kp_view.astype(np.int64))
-    bundle_history: list[tuple[float, float]] = []
-
-    optim, sched = _optimizer(opts, head.parameters())
-    order = torch.randperm(n, generator=gen)
-    cursor = 0
-    history: list[tuple[float, float, float]] = []
+    optim, sched = _optimizer(opts, head.parameters(), device)
+    draw = _BatchDraw(n, opts.batch_size, gen, sampler)
+    steps = torch.full((opts.iterations, 6), float("nan"), device=device)  # per-step statistics, on the device
+    history = np.full((opts.iterations, 6), np.nan)
     validation: list[dict[str, float]] = []
+    nan = torch.full((), float("nan"), device=device)
     start = time.perf_counter()
-    bar = tqdm(range(opts.iterations), desc="train", unit="it")
-    for it in bar:
-        if cursor + opts.batch_size > n:
-            order, cursor = torch.randperm(n, generator=gen), 0
-        idx = order[cursor:cursor + opts.batch_size]
-        cursor += opts.batch_size
-        v = view[idx]
-        x = feats[idx].to(device=device, dtype=torch.float32)
-        if sampler is not None:
-            rows, sizes = sampler.next()
-            rows_t = torch.from_numpy(rows)
-            x = torch.cat([x, kp_feats[rows_t].to(device=device, dtype=torch.float32)])
-        with autocast(precision, device):
-            pred = head.forward_flat(x)
-        tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
-        pix_loss, stats = reprojection_loss(
-            pred[:len(idx)], pixels[idx].to(device), Rv[v].to(device), tv[v].to(device), Kv[v].to(device),
-            Kinv[v].to(device), tau, depth_min=depth_min, depth_max=depth_max,
-            max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
-        loss = opts.reproj_weight * pix_loss
-        if sampler is not None:
-            kv = kp_view[rows_t]
-            b_loss, b_stats = bundle_loss(
-                pred[len(idx):], torch.from_numpy(sizes), kp_pixels[rows_t].to(device), Rv[kv].to(device),
-                tv[kv].to(device), Kv[kv].to(device), Kinv[kv].to(device), tau, form=opts.bundle_loss,
-                depth_min=depth_min, depth_max=depth_max, invalid_depth=invalid_depth, max_reproj=opts.max_reproj_px)
-            loss = loss + opts.bundle_weight * b_loss
-            bundle_history.append((float(b_loss.detach()), float(b_stats["reproj_median"])))
-        optim.zero_grad(set_to_none=True)
-        loss.backward()
-        optim.step()
-        sched.step()
-        if not torch.isfinite(loss):
-            raise UsvcError(f"training diverged at iteration {it} (loss {float(loss)}); lower train.lr")
-        history.append((float(pix_loss.detach()), float(stats["valid_fraction"]), float(stats["reproj_median"])))
-        if heldout is not None and opts.validate_every and ((it + 1) % opts.validate_every == 0
-                                                            or it + 1 == opts.iterations):
-            fit = heldout_fit(head, heldout, precision, depth_min, device)
-            validation.append({"iteration": it + 1, **fit})
-            log.debug("iteration %d: held-out median reprojection %.2f px, %.1f %% within 10 px", it + 1,
-                      fit["median_reprojection_px"], 100 * fit["within_10px"])
-        if it % 50 == 0:
-            bar.set_postfix(loss=f"{history[-1][0]:.2f}", valid=f"{history[-1][1]:.2f}",
-                            px=f"{history[-1][2]:.1f}", tau=f"{tau:.1f}")
+    bar = tqdm(total=opts.iterations, desc="train", unit="it")
+    with _deterministic(device):
+        for lo in range(0, opts.iterations, opts.report_every):
+            hi = min(lo + opts.report_every, opts.iterations)
+            block = draw.block(hi - lo, device)
+            for it in range(lo, hi):
+                k = it - lo
+                idx = block.idx[k]
+                v = view[idx]
+                x = feats[idx].float()
+                if sampler is not None:
+                    rows = block.rows[block.row_at[k]:block.row_at[k + 1]]
+                    x = torch.cat([x, kp_feats[rows].float()])
+                with autocast(precision, device):
+                    pred = head.forward_flat(x)
+                tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
+                pix_loss, stats = reprojection_loss(
+                    pred[:len(idx)], pixels[idx], Rv[v], tv[v], Kv[v], Kinv[v], tau, depth_min=depth_min,
+                    depth_max=depth_max, max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
+                loss = opts.reproj_weight * pix_loss
+                b_loss = b_px = nan
+                if sampler is not None:
+                    kv = kp_view[rows]
+                    pairs = (block.pair_a[block.pair_at[k]:block.pair_at[k + 1]],
+                             block.pair_b[block.pair_at[k]:block.pair_at[k + 1]])
+                    b_loss, b_stats = bundle_loss(
+                        pred[len(idx):], block.sizes[block.size_at[k]:block.size_at[k + 1]], kp_pixels[rows],
+                        Rv[kv], tv[kv], Kv[kv], Kinv[kv], tau, form=opts.bundle_loss, depth_min=depth_min,
+                        depth_max=depth_max, invalid_depth=invalid_depth, max_reproj=opts.max_reproj_px, pairs=pairs)
+                    loss = loss + opts.bundle_weight * b_loss
+                    b_px = b_stats["reproj_median"]
+                optim.zero_grad(set_to_none=True)
+                loss.backward()
+                optim.step()
+                sched.step()
+                steps[it] = torch.stack([loss.detach(), pix_loss.detach(), stats["valid_fraction"],
+                                         stats["reproj_median"], b_loss.detach(), b_px]).float()
+                if heldout is not None and opts.validate_every and ((it + 1) % opts.validate_every == 0
+                                                                    or it + 1 == opts.iterations):
+                    fit = heldout_fit(head, heldout, precision, depth_min, device)
+                    validation.append({"iteration": it + 1, **fit})
+                    log.debug("iteration %d: held-out median reprojection %.2f px, %.1f %% within 10 px", it + 1,
+                              fit["median_reprojection_px"], 100 * fit["within_10px"])
+            history[lo:hi] = read_back(steps[lo:hi])
+            bad = np.flatnonzero(~np.isfinite(history[lo:hi, _TOTAL]))
+            if bad.size:
+                raise UsvcError(f"training diverged at iteration {lo + int(bad[0])} "
+                                f"(loss {history[lo + bad[0], _TOTAL]}); lower train.lr")
+            bar.update(hi - lo)
+            bar.set_postfix(loss=f"{history[hi - 1, _PIX]:.2f}", valid=f"{history[hi - 1, _VALID]:.2f}",
+                            px=f"{history[hi - 1, _PX]:.1f}", tau=f"{tau:.1f}")
+    bar.close()
     seconds = time.perf_counter() - start
     head.eval()
-    tail = np.array(history[-max(1, len(history) // 20):])
+    tail = history[-max(1, len(history) // 20):]
     summary = {
         "iterations": opts.iterations,
         "precision": precision,
         "samples_seen": opts.iterations * opts.batch_size,
         "epochs": round(opts.iterations * opts.batch_size / n, 2),
-        "final_loss": float(tail[:, 0].mean()),
-        "final_valid_fraction": float(tail[:, 1].mean()),
-        "final_reproj_median_px": float(np.nanmean(tail[:, 2])),
+        "final_loss": float(tail[:, _PIX].mean()),
+        "final_valid_fraction": float(tail[:, _VALID].mean()),
+        "final_reproj_median_px": float(np.nanmean(tail[:, _PX])),
         "train_seconds": seconds,
         "samples_per_second": opts.iterations * opts.batch_size / seconds,
         "median_depth": float(median_depth),
-        "loss_curve": [float(np.mean([h[0] for h in history[i:i + 100]])) for i in range(0, len(history), 100)],
+        "loss_curve": [float(history[i:i + 100, _PIX].mean()) for i in range(0, len(history), 100)],
         "bundle_weight": opts.bundle_weight,
     }
     if validation:
         summary["heldout_cells"] = len(heldout.features)
         summary["heldout_curve"] = validation
     if sampler is not None:
-        btail = np.array(bundle_history[-max(1, len(bundle_history) // 20):])
         summary.update({
             "bundle_groups": sampler.num_groups,
             "bundle_group_epochs": round(opts.iterations * sampler.groups_per_batch / sampler.num_groups, 2),
-            "final_bundle_loss": float(btail[:, 0].mean()),
-            "final_bundle_reproj_median_px": float(np.nanmean(btail[:, 1])),
-            "bundle_loss_curve": [float(np.mean([h[0] for h in bundle_history[i:i + 100]]))
-                                  for i in range(0, len(bundle_history), 100)],
+            "final_bundle_loss": float(tail[:, _BUNDLE].mean()),
+            "final_bundle_reproj_median_px": float(np.nanmean(tail[:, _BUNDLE_PX])),
+            "bundle_loss_curve": [float(history[i:i + 100, _BUNDLE].mean()) for i in range(0, len(history), 100)],
         })
-    log.info("trained head (%s): %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
-             precision, opts.iterations, opts.batch_size, seconds, summary["final_loss"], summary["final_valid_fraction"],
-             summary["final_reproj_median_px"])
+    log.info("trained head (%s, %s): %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
+             precision, device, opts.iterations, opts.batch_size, seconds, summary["final_loss"],
+             summary["final_valid_fraction"], summary["final_reproj_median_px"])
     return head, summary
-
