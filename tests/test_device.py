@@ -49,7 +49,7 @@ def test_a_bad_device_fails_at_config_time_naming_the_key():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
-@pytest.mark.parametrize("stage", ["buffer", "train", "relocalize", "gaussians"])
+@pytest.mark.parametrize("stage", ["buffer", "train", "relocalize", "gaussians", "render"])
 def test_cuda_where_there_is_none_stops_a_torch_stage_in_one_line(stage, tmp_path):
     proc = subprocess.run([sys.executable, "-m", f"stages.{stage}", "device=cuda", f"data_dir={tmp_path / 'd'}",
                            f"results_dir={tmp_path / 'r'}", f"hydra.run.dir={tmp_path / 'log'}"],
@@ -69,8 +69,8 @@ def test_the_torch_stages_and_only_they_resolve_the_device(monkeypatch):
     monkeypatch.syspath_prepend(str(REPO))
     try:
         for name in ("prepare", "sfm", "keypoints", "landmarks", "metrics", "buffer", "train", "relocalize",
-                     "gaussians"):
+                     "gaussians", "render"):
             stage = importlib.import_module(f"stages.{name}").stage
-            assert stage.torch_device == (name in ("buffer", "train", "relocalize", "gaussians")), name
+            assert stage.torch_device == (name in ("buffer", "train", "relocalize", "gaussians", "render")), name
     finally:
         register_configs()  # a stage registers only its own groups' schemas: every group typed again for the others

@@ -77,8 +77,10 @@ def _in_frame(uv: np.ndarray, z: np.ndarray, w: int, h: int) -> np.ndarray:
 
 @torch.no_grad()
 def render_novel_views(model: Gaussians, frames: list[Frame], kp: SceneKeypoints,
-                       opts: RenderOptions, tile: int = 8) -> tuple[list[NovelView], dict]:
-    """`opts.views` novel views (fewer only when the tries run out; the stats say how many)."""
+                       opts: RenderOptions, tile: int = 8, device: str = "cpu") -> tuple[list[NovelView], dict]:
+    """`opts.views` novel views (fewer only when the tries run out; the stats say how many),
+    rasterised on `device` (the poses are drawn on the host, so the views are the same ones)."""
+    model = model.to(device)
     rng = np.random.default_rng(opts.seed)
     sources = [f for f in frames if len(kp.by_image.get(f.name, (np.zeros(0),))[0]) >= opts.min_cluster_keypoints]
     if not sources:
@@ -115,14 +117,14 @@ def render_novel_views(model: Gaussians, frames: list[Frame], kp: SceneKeypoints
                 rejected_cluster += 1
                 continue
             view = View(torch.tensor(R, dtype=torch.float32), torch.tensor(t, dtype=torch.float32),
-                        torch.tensor(K, dtype=torch.float32), w, h)
+                        torch.tensor(K, dtype=torch.float32), w, h).to(device)
             out = render(model, view, tile=tile)
-            d, a = out.depth.numpy().astype(np.float32), out.alpha.numpy()
+            d, a = out.depth.cpu().numpy().astype(np.float32), out.alpha.cpu().numpy()
             ids, kuv = visible_keypoints(kp.xyz, R, t, K, d, a, opts.depth_tolerance, opts.min_alpha)
             if len(ids) < opts.min_visible_keypoints:
                 rejected_visible += 1
                 continue
-            rgb = (out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+            rgb = (out.rgb.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
             views.append(NovelView(f.name, R, t, K, rgb, d, ids.astype(np.int32), kuv.astype(np.float32),
                                    rotation_error_deg(R, f.R),
                                    float(np.linalg.norm(camera_centers(R, t) - camera_centers(f.R, f.t)))))

@@ -25,12 +25,13 @@ class Inputs:
     keypoints: Path  # the kept keypoints (keypoints/keypoints.h5)
 
 
-def run(inputs: Inputs, out: Path, options: RenderOptions, *, tile: int) -> dict:
-    """Render the views into `out` (rasteriser tiles of `tile` pixels, as the fit); returns their figures."""
+def run(inputs: Inputs, out: Path, options: RenderOptions, *, tile: int, device: str = "cpu") -> dict:
+    """Render the views on `device` into `out` (rasteriser tiles of `tile` pixels, as the fit);
+    returns their figures."""
     model = read_splat_ply(inputs.splat)
     frames = read_scene_h5(inputs.scene).split("train")
     keypoints = read_scene_keypoints(inputs.keypoints)
-    views, stats = render_novel_views(model, frames, keypoints, options, tile=tile)
+    views, stats = render_novel_views(model, frames, keypoints, options, tile=tile, device=device)
     write_rendered_views(out / RENDER_H5, views)
     stats.update({"computed": True, "seed": options.seed, "width": int(views[0].rgb.shape[1]),
                   "height": int(views[0].rgb.shape[0])})
