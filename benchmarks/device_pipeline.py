@@ -1,0 +1,172 @@
+"""Every stage of a scene on one device, end to end, as `dvc repro` runs them: one command that
+measures the GPU path (or the CPU's).
+
+For each scene it runs `python -m stages.<stage> scene=<scene> device=<device>` from `generate`
+(the bundled scene) or `prepare` through `metrics`, each stage in its own process, into a work
+folder (`--work`, default a temporary one) so that the checkout's artifacts stay as they are.
+Then it trains the map a second time with the same seed and says whether the two maps are the
+same bits, and it times the head's training steps alone at larger batches (data already on the
+device). It writes `results/benchmarks/device_pipeline_<device>_<scene>.json`:
+
+- per stage: wall seconds of its process (imports included), the seconds and device the stage
+  recorded itself (`<stage>.timing.json`: device, device_name);
+- train: iterations, samples per second, precision; the repeat's seconds and `same_map_twice`;
+- relocalize: ms per query; metrics: the (5cm,5deg)/(2cm,2deg)/(1cm,1deg) shares and medians;
+- the whole run's seconds (what `dvc repro` of the scene costs from scratch on this machine);
+- `head_throughput`: samples per second of `train_head` at each `--batch-sizes` value.
+
+    python benchmarks/device_pipeline.py --device cuda                   # the bundled scene
+    python benchmarks/device_pipeline.py --device cuda --scene mini --scene office
+    python benchmarks/device_pipeline.py --device cpu -- train.iterations=200   # a quick check here
+
+A real scene needs its raw data where its config points (`data/raw/<scene>`, see the README).
+Run it on an otherwise idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from _report import write_report  # noqa: E402
+
+STAGES = ("generate", "prepare", "sfm", "gaussians", "keypoints", "render", "buffer", "train", "landmarks",
+          "relocalize", "metrics")
+METRICS = ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
+           "acc_rel_1cm_1deg", "median_trans_cm", "median_trans_rel_cm", "median_rot_deg", "n_queries", "n_failed")
+
+
+def run_stage(stage: str, args: list[str], env: dict[str, str]) -> float:
+    """One stage in its own process; its wall seconds (SystemExit naming it when it fails)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", f"stages.{stage}", *args], cwd=ROOT, env=env,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
+        raise SystemExit(f"stage {stage} failed (exit {proc.returncode}): {lines[-1] if lines else '(no output)'}")
+    return time.perf_counter() - t0
+
+
+def _json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _md5(path: Path) -> str:
+    return hashlib.md5(path.read_bytes()).hexdigest()
+
+
+def head_throughput(data: Path, scene: str, device: str, overrides: list[str], batch_sizes: list[int],
+                    iterations: int) -> list[dict]:
+    """Samples per second of the training steps alone (buffer already read), per batch size."""
+    import usvc  # noqa: F401  (OpenMP's wait policy before torch)
+    from usvc.buffer.buffer_file import read_buffer
+    from usvc.pipeline.config import compose_for_script, group_options
+    from usvc.pipeline.paths import ScenePaths
+    from usvc.sfm.tracks_file import read_median_depth
+    from usvc.train.trainer import train_head
+
+    cfg = compose_for_script(scene, overrides)
+    train, model = group_options(cfg, "train"), group_options(cfg, "model")
+    paths = ScenePaths(data, data.parent / "results", scene)
+    buf = read_buffer(paths.buffer_file)
+    depth = read_median_depth(paths.tracks_file)
+    rows = []
+    for batch in batch_sizes:
+        opts = replace(train, iterations=iterations, batch_size=batch, validate_every=0)
+        _, summary = train_head(buf, depth, opts, head_width=model.head_width, head_blocks=model.head_blocks,
+                                seed=0, device=device)
+        rows.append({"batch_size": batch, "iterations": iterations, "precision": summary["precision"],
+                     "seconds": round(summary["train_seconds"], 2),
+                     "samples_per_second": round(summary["samples_per_second"])})
+        print(f"  head alone, batch {batch}: {summary['samples_per_second'] / 1e6:.2f} M samples/s", flush=True)
+    return rows
+
+
+def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env: dict[str, str],
+                  batch_sizes: list[int], head_iterations: int) -> dict:
+    data, results = work / "data", work / "results"
+    common = [f"scene={scene}", f"device={device}", f"data_dir={data}", f"results_dir={results}",
+              f"hydra.run.dir={work / 'logs'}"]
+    if scene == "mini":
+        common.append(f"scene.path={data / 'raw' / scene}")
+    stages = [s for s in STAGES if s != "generate" or scene == "mini"]
+    rows = []
+    t0 = time.perf_counter()
+    for stage in stages:
+        seconds = run_stage(stage, [*common, *overrides], env)
+        record = _json(results / scene / ("prepared.timing.json" if stage == "prepare" else f"{stage}.timing.json"))
+        row = {"stage": stage, "wall_seconds": round(seconds, 2), "stage_seconds": record.get("seconds"),
+               "device": record.get("device"), "device_name": record.get("device_name"),
+               "peak_memory_mb": record.get("peak_memory_mb")}
+        rows.append(row)
+        print(f"{scene:>8} {stage:>10}: {seconds:7.1f} s  {row['device'] or ''}", flush=True)
+    total = time.perf_counter() - t0
+    train = {**_json(results / scene / "train.json"), **_json(results / scene / "train.timing.json")}
+    reloc = {**_json(results / scene / "relocalize.json"), **_json(results / scene / "relocalize.timing.json")}
+    metrics = _json(results / scene / "metrics.json")
+    map_file = data / scene / "map" / "map.pt"
+    first = _md5(map_file)
+    repeat = run_stage("train", [*common, *overrides], env)
+    result = {
+        "scene": scene, "device": device, "overrides": overrides,
+        "device_name": next((r["device_name"] for r in rows if r["stage"] == "train"), None),
+        "total_seconds": round(total, 1), "stages": rows,
+        "train": {k: train.get(k) for k in ("iterations", "samples_seen", "precision", "train_seconds",
+                                            "samples_per_second", "final_loss", "final_reproj_median_px")},
+        "train_repeat_wall_seconds": round(repeat, 2), "same_map_twice": _md5(map_file) == first,
+        "relocalize": {k: reloc.get(k) for k in ("ms_per_query", "ms_network", "ms_refine", "ms_pnp", "ms_fallback",
+                                                 "queries", "answer_paths", "fallback_runs")},
+        "metrics": {k: metrics[k] for k in METRICS if k in metrics},
+    }
+    if batch_sizes:
+        result["head_throughput"] = head_throughput(data, scene, device, overrides,
+                                                    batch_sizes, head_iterations)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (every torch stage)")
+    parser.add_argument("--scene", action="append", help="scene to run (repeatable; default: mini)")
+    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one, removed afterwards)")
+    parser.add_argument("--batch-sizes", type=int, nargs="*", default=[2048, 8192, 32768],
+                        help="batch sizes at which to time the head's steps alone (none: skip)")
+    parser.add_argument("--head-iterations", type=int, default=300)
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every stage (after --)")
+    args = parser.parse_args()
+    from usvc.core.device import resolve_device
+    from usvc.core.errors import UsvcError
+
+    try:
+        device = resolve_device(args.device)
+    except UsvcError as exc:
+        raise SystemExit(str(exc)) from None
+    env = dict(os.environ)
+    reports = []
+    with tempfile.TemporaryDirectory(prefix="usvc-device-") as tmp:
+        for scene in args.scene or ["mini"]:
+            work = (args.work or Path(tmp)) / scene
+            work.mkdir(parents=True, exist_ok=True)
+            result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations)
+            reports.append(write_report(f"device_pipeline_{device.replace(':', '')}_{scene}", result))
+            print(json.dumps({k: result[k] for k in ("scene", "device_name", "total_seconds", "same_map_twice",
+                                                      "metrics")}, indent=1))
+    print("reports:", *map(str, reports))
+
+
+if __name__ == "__main__":
+    main()
