@@ -125,10 +125,10 @@ def test_a_dataclass_without_docstring_is_refused():
         render("bare", Bare)
 
 
-@pytest.mark.parametrize("path", sorted(p for p in (CONF / "model").glob("*.yaml") if p.name != "default.yaml"),
-                         ids=lambda p: p.name)
-def test_model_alternatives_set_only_what_differs(path):
-    """model=small, small_real, xfeat: every value they set (but the name) differs from the default,
+@pytest.mark.parametrize("path", sorted(p for group in ("model", "train") for p in (CONF / group).glob("*.yaml")
+                                       if p.name != "default.yaml"), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_alternatives_set_only_what_differs(path):
+    """model=small, small_real, xfeat and train=full: every value they set (but the name) differs from the default,
     so the dataclass stays the one place of every default. (The stages that read the model group
     register its schema, which fills in the rest; gaussians=reference stays complete because the
     render stage reads gaussians.tile without registering that group.)"""
