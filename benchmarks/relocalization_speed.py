@@ -1,8 +1,8 @@
 """Time one relocalization query, split into encoder forward, head and RANSAC-PnP, per model and size.
 
-Both models use the encoder weights shipped in usvc/weights when they exist, else random ones
-(speed does not depend on the values; the table says which). The head has the configured
-layout of conf/model/<name>.yaml (default: 512 wide, small: 256). PnP runs through `solve_pnp` on what a good map would give:
+Every model of conf/model/ (default, small, small_real, xfeat) runs as its config composes it: the
+encoder its weights name (shipped in the packages), the head's configured layout (default: 512
+wide, the others 256). PnP runs through `solve_pnp` on what a good map would give:
 the cell centres of a PINHOLE camera (f = 0.82 x width) looking at a tilted plane 1.5-3 m away,
 1 cm 3D noise, 30 % of the cells replaced by points drawn from the box of the others. Each number
 is the median over --runs queries after --warmup untimed ones; "total" is the median of the
@@ -31,31 +31,24 @@ import torch  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from _report import write_report  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
-from usvc.core.errors import UsvcError  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg  # noqa: E402
 from usvc.core.precision import PRECISIONS, autocast, resolve_precision  # noqa: E402
 from usvc.core.scene import Camera  # noqa: E402
-from usvc.model.encoder import (  # noqa: E402
-    Encoder,
-    cell_centers,
-    encoder_flops,
-    feature_size,
-    load_encoder_weights,
-)
+from usvc.model.encoder import cell_centers, encoder_flops, feature_size  # noqa: E402
 from usvc.model.head import Head  # noqa: E402
+from usvc.model.options import ModelOptions  # noqa: E402
 from usvc.model.preprocess import normalise  # noqa: E402
+from usvc.pipeline.config import compose_for_script, group_options  # noqa: E402
 from usvc.relocalize.pnp import solve_pnp  # noqa: E402
-from usvc.weights import shipped_encoder_path  # noqa: E402
+from usvc.weights import load_configured_encoder  # noqa: E402
 
-MODELS = ("default", "small")
+MODELS = tuple(sorted(p.stem for p in (ROOT / "conf" / "model").glob("*.yaml")))
 
 
-def model_config(name: str) -> tuple[float, int, int]:
-    """(encoder width, head width, head blocks) read from conf/model/<name>.yaml, the one source."""
-    cfg = OmegaConf.load(ROOT / "conf" / "model" / f"{name}.yaml")
-    return float(cfg.encoder_width), int(cfg.head_width), int(cfg.head_blocks)
+def model_options(name: str) -> ModelOptions:
+    """conf/model/<name>.yaml as the stages compose it (a model file sets only what differs)."""
+    return group_options(compose_for_script("mini", [f"model={name}"]), "model")
 OUTLIER_RATIO = 0.3
 POINT_NOISE_M = 0.01
 
@@ -63,15 +56,6 @@ POINT_NOISE_M = 0.01
 def ace_median(values: list[float]) -> float:
     """Element ⌊N/2⌋ of the sorted list, the median rule the evaluation uses."""
     return float(np.sort(values)[len(values) // 2])
-
-
-def load_encoder(width: float) -> tuple[Encoder, str]:
-    """The shipped encoder of this width, or a random one when it has not been built yet."""
-    try:
-        return load_encoder_weights(shipped_encoder_path(width), width=width), "shipped"
-    except UsvcError:
-        torch.manual_seed(0)
-        return Encoder(width).eval().requires_grad_(False), "random"
 
 
 def plane_scene(h_cells: int, w_cells: int, camera: Camera, rng: np.random.Generator
@@ -97,7 +81,7 @@ def sync(device: torch.device) -> None:
 
 
 @torch.inference_mode()
-def time_queries(encoder: Encoder, head: Head, width: int, height: int, runs: int, warmup: int,
+def time_queries(encoder: torch.nn.Module, head: Head, width: int, height: int, runs: int, warmup: int,
                  device: torch.device, precision: str = "fp32") -> dict[str, float]:
     """Median ms of each stage over `runs` queries, plus how many PnP solves found the true pose."""
     rng = np.random.default_rng(0)
@@ -159,29 +143,32 @@ def main() -> None:
           f"{os.cpu_count()} cores, load avg {load:.1f}; "
           f"median of {args.runs} runs after {args.warmup} warm-up; PnP: opencv, "
           f"{OUTLIER_RATIO:.0%} outliers; network at {precision}")
-    header = (f"{'model':<8} {'weights':<8} {'size':>8} {'encoder ms':>10} {'head ms':>8} {'pnp ms':>8} "
+    header = (f"{'model':<10} {'weights':<18} {'size':>8} {'encoder ms':>10} {'head ms':>8} {'pnp ms':>8} "
               f"{'total ms':>9} {'GFLOP':>6} {'GFLOP/s':>8} {'pnp ok':>7}")
     print(header)
     print("-" * len(header))
     rows = []
     for model in args.models:
-        width, head_width, head_blocks = model_config(model)
-        encoder, source = load_encoder(width)
-        head = Head(encoder.out_channels, head_width, head_blocks).eval().requires_grad_(False)
+        opts = model_options(model)
+        encoder, weights = load_configured_encoder(opts.encoder_width, opts.encoder_weights, opts.encoder)
+        source = Path(weights).name
+        head = Head(encoder.out_channels, opts.head_width, opts.head_blocks).eval().requires_grad_(False)
         encoder.to(device)
         head.to(device)
         for w, h in args.sizes:
             r = time_queries(encoder, head, w, h, args.runs, args.warmup, device, precision)
-            gflop = encoder_flops(h, w, width) / 1e9
+            # the FLOP count is the ACE layout's; XFeat's backbone has none here
+            gflop = encoder_flops(h, w, opts.encoder_width) / 1e9 if opts.encoder == "ace" else None
+            rate = gflop / r["encoder"] * 1e3 if gflop is not None else None
             solved = f"{int(r['solved'])}/{args.runs}"
-            print(f"{model:<8} {source:<8} {f'{w}x{h}':>8} {r['encoder']:>10.1f} {r['head']:>8.1f} "
-                  f"{r['pnp']:>8.1f} {r['total']:>9.1f} {gflop:>6.1f} {gflop / r['encoder'] * 1e3:>8.1f} "
+            print(f"{model:<10} {source[:18]:<18} {f'{w}x{h}':>8} {r['encoder']:>10.1f} {r['head']:>8.1f} "
+                  f"{r['pnp']:>8.1f} {r['total']:>9.1f} {gflop or float('nan'):>6.1f} {rate or float('nan'):>8.1f} "
                   f"{solved:>7}")
-            rows.append({"model": model, "weights": source, "encoder_width": width, "head_width": head_width,
-                         "head_blocks": head_blocks, "size": f"{w}x{h}", "encoder_ms": r["encoder"],
+            rows.append({"model": model, "encoder": opts.encoder, "weights": source,
+                         "encoder_width": opts.encoder_width, "head_width": opts.head_width,
+                         "head_blocks": opts.head_blocks, "size": f"{w}x{h}", "encoder_ms": r["encoder"],
                          "head_ms": r["head"], "pnp_ms": r["pnp"], "total_ms": r["total"], "encoder_gflop": gflop,
-                         "encoder_gflops_per_s": gflop / r["encoder"] * 1e3, "pnp_solved": int(r["solved"]),
-                         "runs": args.runs})
+                         "encoder_gflops_per_s": rate, "pnp_solved": int(r["solved"]), "runs": args.runs})
     suffix = "_bf16" if precision == "bf16" else ""
     write_report(f"relocalization_speed_{device.type}{suffix}", {
         "device": str(device), "precision": precision, "device_name": name, "torch_threads": torch.get_num_threads(),
