@@ -373,3 +373,39 @@ def test_localize_landmarks_flags(files: dict[str, Path], tmp_path: Path) -> Non
     assert blind.returncode == 1 and "prior=none needs the map's landmarks" in blind.stderr
     assert len(blind.stderr.strip().splitlines()) == 1 and "Traceback" not in blind.stderr
     assert usvc(*base, "--prior", "maybe", files["photo"]).returncode == 2
+
+
+def test_photos_are_decoded_one_ahead_in_order(monkeypatch, tmp_path: Path) -> None:
+    """`usvc localize` decodes the next photo while one is localized; order and failures are kept."""
+    import threading
+
+    import usvc.core.images as images
+    from usvc.cli import _decoded_ahead
+    from usvc.core.errors import UsvcError
+
+    started: list[str] = []
+    gate = threading.Event()
+
+    def read_photo(path):
+        started.append(Path(path).name)
+        if Path(path).name == "b.jpg":
+            gate.wait(5)
+            raise UsvcError("b.jpg: cannot be decoded")
+        return f"pixels of {Path(path).name}"
+
+    monkeypatch.setattr(images, "read_photo", read_photo)
+    ahead = _decoded_ahead([tmp_path / "a.jpg", tmp_path / "b.jpg", None, tmp_path / "d.jpg"])
+    first = next(ahead)
+    assert first.result() == "pixels of a.jpg"
+    for _ in range(500):  # b.jpg is being decoded while the caller still holds only a.jpg
+        if "b.jpg" in started:
+            break
+        threading.Event().wait(0.01)
+    assert started == ["a.jpg", "b.jpg"]
+    gate.set()
+    second = next(ahead)
+    with pytest.raises(UsvcError, match="b.jpg: cannot be decoded"):
+        second.result()
+    assert next(ahead) is None  # already known unreadable: nothing decoded
+    assert next(ahead).result() == "pixels of d.jpg"
+    assert list(ahead) == [] and started == ["a.jpg", "b.jpg", "d.jpg"]

@@ -221,7 +221,7 @@ class Relocalizer:
             return ""
         return _focal_reason("the image implies", ratio, tolerance, source)
 
-    def localize(self, image: np.ndarray | str | Path, intrinsics: Intrinsics | None, *,
+    def localize(self, image: np.ndarray | str | Path | Photo, intrinsics: Intrinsics | None, *,
                  channels: str = "rgb", intrinsics_source: str = "") -> PoseEstimate:
         """Pose of one photo. ``intrinsics=None`` estimates the focal length with the pose
         (principal point at the image centre, no distortion); a distorted Camera is undistorted
@@ -229,15 +229,16 @@ class Relocalizer:
 
         An array is uint8, HxW grey or HxWx3 in RGB order (``channels="rgb"``, as PIL and imageio
         give it) or BGR (``channels="bgr"``, as ``cv2.imread`` gives it); a path is read with its
-        EXIF orientation applied. ``intrinsics_source`` names where the intrinsics came from (e.g.
+        EXIF orientation applied (`usvc.core.images.read_photo`, whose `Photo` is also taken, so
+        that a caller can decode the next photo while this one is localized). ``intrinsics_source`` names where the intrinsics came from (e.g.
         "the EXIF focal length (...)") in the reason a query they fail gives.
 
         Every failed answer says why in ``rejected``; doubts that did not stop it (a principal
         point far off the centre, non-square pixels) are in ``warnings``."""
         if not isinstance(intrinsics_source, str):
             raise UsvcError(f"intrinsics_source must be a string, got {type(intrinsics_source).__name__}")
-        if isinstance(image, (str, Path)):  # EXIF orientation applied, as for mapping images
-            photo = read_photo(image)
+        if isinstance(image, (str, Path, Photo)):  # EXIF orientation applied, as for mapping images
+            photo = image if isinstance(image, Photo) else read_photo(image)
             if photo.reduction > 1:
                 return self._localize_reduced(photo, intrinsics, intrinsics_source)
             image, channels = photo.bgr, "bgr"
