@@ -123,10 +123,11 @@ def test_cuda_training_is_the_same_map_every_time_and_never_waits_inside_a_block
     b, _ = train_head(buf, 3.0, opts, head_width=64, head_blocks=1, device="cuda")
     _same(a, b)
     assert summary["precision"] == precision
-    cpu, _ = train_head(buf, 3.0, _opts(iterations=40, report_every=20), head_width=64, head_blocks=1)
-    x = torch.from_numpy(buf.features[:200]).float()
-    with torch.no_grad():
-        torch.testing.assert_close(a.forward_flat(x.cuda()).cpu(), cpu.forward_flat(x), rtol=0.05, atol=0.05)
+    if precision == "fp32":  # the same draws and arithmetic as the CPU's, up to the kernels' rounding
+        cpu, _ = train_head(buf, 3.0, opts, head_width=64, head_blocks=1)
+        x = torch.from_numpy(buf.features[:200]).float()
+        with torch.no_grad():
+            torch.testing.assert_close(a.forward_flat(x.cuda()).cpu(), cpu.forward_flat(x), rtol=0.01, atol=0.01)
 
 
 class _no_sync_warnings_outside_reads:

@@ -7,12 +7,16 @@ unless the user set one, so import usvc before torch to have it.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 from usvc.pipeline.threads import set_wait_policy
 
 # Before torch or numpy load: OpenMP threads sleep at barriers instead of spinning (see threads.py).
 set_wait_policy()
+# Before CUDA starts: cuBLAS's deterministic workspace, which training's deterministic kernels on
+# CUDA need (same seed and device, same map); nothing on a CPU.
+os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
 
 __all__ = ["PoseEstimate", "RelocalizeOptions", "Relocalizer"]
 
