@@ -41,6 +41,9 @@ sys.path.insert(0, str(ROOT))
 
 from _report import write_report  # noqa: E402
 
+from usvc.core.artifact_names import MAP_PT  # noqa: E402
+from usvc.pipeline.paths import ScenePaths  # noqa: E402
+
 STAGES = ("generate", "prepare", "sfm", "gaussians", "keypoints", "render", "buffer", "train", "landmarks",
           "relocalize", "metrics")
 METRICS = ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
@@ -75,7 +78,6 @@ def head_throughput(data: Path, scene: str, device: str, overrides: list[str], b
     import usvc  # noqa: F401  (OpenMP's wait policy before torch)
     from usvc.buffer.buffer_file import read_buffer
     from usvc.pipeline.config import compose_for_script, group_options
-    from usvc.pipeline.paths import ScenePaths
     from usvc.sfm.tracks_file import read_median_depth
     from usvc.train.trainer import train_head
 
@@ -117,8 +119,9 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
     total = time.perf_counter() - t0
     train = {**_json(results / scene / "train.json"), **_json(results / scene / "train.timing.json")}
     reloc = {**_json(results / scene / "relocalize.json"), **_json(results / scene / "relocalize.timing.json")}
-    metrics = _json(results / scene / "metrics.json")
-    map_file = data / scene / "map" / "map.pt"
+    paths = ScenePaths(data, results, scene)
+    metrics = _json(paths.metrics("metrics"))
+    map_file = paths.map / MAP_PT
     first = _md5(map_file)
     repeat = run_stage("train", [*common, *overrides], env)
     result = {
