@@ -7,13 +7,11 @@ from __future__ import annotations
 import math
 import sys
 
-import numpy as np
 import pytest
 import torch
 
 import usvc.train.trainer as trainer
 from usvc.core.errors import UsvcError
-from usvc.train.bundle_loss import group_pairs
 from usvc.train.trainer import TrainOptions, train_head
 
 from test_train_head import synthetic_buffer, with_keypoint_tuples
@@ -74,13 +72,6 @@ def test_the_block_length_does_not_change_the_map():
              for every in (1, 7, 1000)]
     _same(heads[0], heads[1])
     _same(heads[0], heads[2])
-
-
-def test_host_pairs_are_the_bundle_loss_pairs():
-    sizes = np.array([2, 1, 3, 16, 4])
-    a, b = trainer._pairs(sizes)
-    ta, tb = group_pairs(torch.from_numpy(sizes))
-    assert np.array_equal(a, ta.numpy()) and np.array_equal(b, tb.numpy())
 
 
 def test_divergence_is_named_at_the_step_it_happened(monkeypatch):

@@ -16,6 +16,7 @@ pairs, so lambda_B = 1 weighs one pair like one pixel sample of L_pi.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from usvc.train.options import BUNDLE_FORMS
@@ -24,13 +25,14 @@ from usvc.train.reprojection_loss import project_samples, reprojection_loss
 FORMS = BUNDLE_FORMS
 
 
-def group_pairs(group_sizes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(a, b) index pairs over observations laid out group after group: all n_g^2 pairs per group."""
-    sizes = group_sizes.long()
-    starts = torch.cumsum(sizes, 0) - sizes
-    pair_counts = sizes * sizes
-    group = torch.repeat_interleave(torch.arange(len(sizes)), pair_counts)
-    local = torch.arange(int(pair_counts.sum())) - torch.repeat_interleave(torch.cumsum(pair_counts, 0) - pair_counts, pair_counts)
+def group_pairs(group_sizes) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) index pairs over observations laid out group after group: all n_g^2 pairs per group
+    (host arrays: the trainer draws them a block of steps at a time, with the groups)."""
+    sizes = np.asarray(group_sizes, dtype=np.int64)
+    starts = np.cumsum(sizes) - sizes
+    counts = sizes * sizes
+    group = np.repeat(np.arange(len(sizes)), counts)
+    local = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
     n = sizes[group]
     return starts[group] + local // n, starts[group] + local % n
 
@@ -61,8 +63,7 @@ def bundle_loss(pred: torch.Tensor, group_sizes: torch.Tensor, pixels: torch.Ten
     if form not in FORMS:
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
     if pairs is None:
-        a, b = group_pairs(group_sizes.cpu())
-        a, b = a.to(pred.device), b.to(pred.device)
+        a, b = (torch.from_numpy(x).to(pred.device) for x in group_pairs(group_sizes.cpu().numpy()))
     else:
         a, b = pairs
     # index_select, not pred[a]: every observation appears in many pairs, and on CPU the gradient

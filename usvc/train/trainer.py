@@ -25,7 +25,7 @@ from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief
-from usvc.train.bundle_loss import bundle_loss
+from usvc.train.bundle_loss import bundle_loss, group_pairs
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
 from usvc.train.reprojection_loss import project_samples, reprojection_loss
@@ -103,15 +103,6 @@ class _Block:
     pair_at: list[int] = field(default_factory=list)
 
 
-def _pairs(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`bundle_loss.group_pairs` on the host, in numpy (the same pairs in the same order)."""
-    starts = np.cumsum(sizes) - sizes
-    group = np.repeat(np.arange(len(sizes)), sizes * sizes)
-    local = np.arange(int((sizes * sizes).sum())) - np.repeat(np.cumsum(sizes * sizes) - sizes * sizes, sizes * sizes)
-    n = sizes[group]
-    return starts[group] + local // n, starts[group] + local % n
-
-
 def _to_device(array: np.ndarray | torch.Tensor, device: str) -> torch.Tensor:
     """Host indices to the device in one copy that does not wait for the queued steps (pinned)."""
     t = torch.as_tensor(array)
@@ -142,7 +133,7 @@ class _BatchDraw:
         rows, sizes, pa, pb = [], [], [], []
         for _ in range(steps):
             r, s = self.sampler.next()
-            a, b = _pairs(s)
+            a, b = group_pairs(s)
             rows.append(r)
             sizes.append(s)
             pa.append(a)
