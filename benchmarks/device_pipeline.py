@@ -29,7 +29,6 @@ import argparse
 import hashlib
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,6 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _report import write_report  # noqa: E402
+from pipeline_time import read_json, run_stage, timing_record  # noqa: E402
 
 from usvc.core.artifact_names import MAP_PT  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
@@ -48,24 +48,6 @@ STAGES = ("generate", "prepare", "sfm", "gaussians", "keypoints", "render", "buf
           "relocalize", "metrics")
 METRICS = ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
            "acc_rel_1cm_1deg", "median_trans_cm", "median_trans_rel_cm", "median_rot_deg", "n_queries", "n_failed")
-
-
-def run_stage(stage: str, args: list[str], env: dict[str, str]) -> float:
-    """One stage in its own process; its wall seconds (SystemExit naming it when it fails)."""
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", f"stages.{stage}", *args], cwd=ROOT, env=env,
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    if proc.returncode != 0:
-        lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
-        raise SystemExit(f"stage {stage} failed (exit {proc.returncode}): {lines[-1] if lines else '(no output)'}")
-    return time.perf_counter() - t0
-
-
-def _json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 def _md5(path: Path) -> str:
@@ -101,36 +83,35 @@ def head_throughput(data: Path, scene: str, device: str, overrides: list[str], b
 def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env: dict[str, str],
                   batch_sizes: list[int], head_iterations: int) -> dict:
     data, results = work / "data", work / "results"
-    common = [f"scene={scene}", f"device={device}", f"data_dir={data}", f"results_dir={results}",
-              f"hydra.run.dir={work / 'logs'}"]
+    common = [f"device={device}", f"data_dir={data}", f"results_dir={results}", f"hydra.run.dir={work / 'logs'}"]
     if scene == "mini":
         common.append(f"scene.path={data / 'raw' / scene}")
     stages = [s for s in STAGES if s != "generate" or scene == "mini"]
     rows = []
     t0 = time.perf_counter()
     for stage in stages:
-        seconds = run_stage(stage, [*common, *overrides], env)
-        record = _json(results / scene / ("prepared.timing.json" if stage == "prepare" else f"{stage}.timing.json"))
+        seconds = run_stage(stage, scene, [*common, *overrides], env)["seconds"]
+        record = timing_record(results / scene, stage)
         row = {"stage": stage, "wall_seconds": round(seconds, 2), "stage_seconds": record.get("seconds"),
                "device": record.get("device"), "device_name": record.get("device_name"),
                "peak_memory_mb": record.get("peak_memory_mb")}
         rows.append(row)
         print(f"{scene:>8} {stage:>10}: {seconds:7.1f} s  {row['device'] or ''}", flush=True)
     total = time.perf_counter() - t0
-    train = {**_json(results / scene / "train.json"), **_json(results / scene / "train.timing.json")}
-    reloc = {**_json(results / scene / "relocalize.json"), **_json(results / scene / "relocalize.timing.json")}
     paths = ScenePaths(data, results, scene)
-    metrics = _json(paths.metrics("metrics"))
+    train = {**read_json(paths.metrics("train")), **timing_record(results / scene, "train")}
+    reloc = {**read_json(paths.metrics("relocalize")), **timing_record(results / scene, "relocalize")}
+    metrics = read_json(paths.metrics("metrics"))
     map_file = paths.map / MAP_PT
     first = _md5(map_file)
-    repeat = run_stage("train", [*common, *overrides], env)
+    repeat = run_stage("train", scene, [*common, *overrides], env)["seconds"]
     result = {
         "scene": scene, "device": device, "overrides": overrides,
         "device_name": next((r["device_name"] for r in rows if r["stage"] == "train"), None),
         "total_seconds": round(total, 1), "stages": rows,
         "train": {k: train.get(k) for k in ("iterations", "samples_seen", "precision", "train_seconds",
                                             "samples_per_second", "final_loss", "final_reproj_median_px")},
-        "train_repeat_wall_seconds": round(repeat, 2), "same_map_twice": _md5(map_file) == first,
+        "train_repeat_wall_seconds": repeat, "same_map_twice": _md5(map_file) == first,
         "relocalize": {k: reloc.get(k) for k in ("ms_per_query", "ms_network", "ms_refine", "ms_pnp", "ms_fallback",
                                                  "queries", "answer_paths", "fallback_runs")},
         "metrics": {k: metrics[k] for k in METRICS if k in metrics},

@@ -62,13 +62,23 @@ def run_stage(stage: str, scene: str, overrides: list[str], env: dict[str, str])
     return {"stage": stage, "seconds": round(seconds, 2)}
 
 
+def read_json(path: Path) -> dict:
+    """A stage's JSON record, or {} when there is none (the stage did not write it)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def timing_record(results: Path, stage: str) -> dict:
+    """What the stage recorded about itself (`<stage>.timing.json` in the scene's results folder:
+    seconds, peak memory, device), or {} when it wrote none."""
+    return read_json(results / ("prepared.timing.json" if stage == "prepare" else f"{stage}.timing.json"))
+
+
 def stage_peak_mb(results: Path, stage: str) -> float | None:
     """The peak resident memory the stage itself recorded in its metrics JSON."""
-    path = results / ("prepared.timing.json" if stage == "prepare" else f"{stage}.timing.json")
-    try:
-        value = json.loads(path.read_text()).get("peak_memory_mb")
-    except (OSError, ValueError):
-        return None
+    value = timing_record(results, stage).get("peak_memory_mb")
     return round(value, 1) if isinstance(value, (int, float)) else None
 
 
