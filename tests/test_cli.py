@@ -380,7 +380,7 @@ def test_photos_are_decoded_one_ahead_in_order(monkeypatch, tmp_path: Path) -> N
     import threading
 
     import usvc.core.images as images
-    from usvc.cli import _decoded_ahead
+    from usvc.relocalize.photo_prefetch import decoded_ahead
     from usvc.core.errors import UsvcError
 
     started: list[str] = []
@@ -394,7 +394,7 @@ def test_photos_are_decoded_one_ahead_in_order(monkeypatch, tmp_path: Path) -> N
         return f"pixels of {Path(path).name}"
 
     monkeypatch.setattr(images, "read_photo", read_photo)
-    ahead = _decoded_ahead([tmp_path / "a.jpg", tmp_path / "b.jpg", None, tmp_path / "d.jpg"])
+    ahead = decoded_ahead([tmp_path / "a.jpg", tmp_path / "b.jpg", None, tmp_path / "d.jpg"])
     first = next(ahead)
     assert first.result() == "pixels of a.jpg"
     for _ in range(500):  # b.jpg is being decoded while the caller still holds only a.jpg

@@ -19,9 +19,6 @@ from usvc.pipeline.logs import quiet_third_party
 from usvc.relocalize.options import MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
-    from concurrent.futures import Future
-
     from usvc.core.scene import Camera
 
 log = logging.getLogger("usvc")
@@ -229,23 +226,6 @@ def _photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]
     return cam, source, note
 
 
-def _decoded_ahead(paths: list[Path | None]) -> Iterator[Future]:
-    """Each photo's `read_photo`, decoded one photo ahead on a second thread: the decoding (JPEG,
-    EXIF orientation) overlaps the previous photo's localization. None: a photo already known to
-    be unreadable (its future is None)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from usvc.core.images import read_photo
-
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="usvc-decode") as pool:
-        ahead = [pool.submit(read_photo, p) if p is not None else None for p in paths[:1]]
-        for k in range(len(paths)):
-            if k + 1 < len(paths):
-                ahead.append(pool.submit(read_photo, paths[k + 1]) if paths[k + 1] is not None else None)
-            yield ahead[k]
-            ahead[k] = None  # the decoded photo is not kept once localized
-
-
 def _localize(args: argparse.Namespace) -> int:
     """Localize each photo.
 
@@ -257,6 +237,7 @@ def _localize(args: argparse.Namespace) -> int:
     --out-dir files are written only at the end, each atomically.
     """
     from usvc.relocalize.exports import Posed, check_names, export
+    from usvc.relocalize.photo_prefetch import decoded_ahead
 
     camera = None
     photo_args = list(args.photos)
@@ -305,7 +286,7 @@ def _localize(args: argparse.Namespace) -> int:
     bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
                disable=len(photos) < 2 or not sys.stderr.isatty())
     errors = 0
-    decoded = _decoded_ahead([None if isinstance(c, _UnreadablePhoto) else p for (_, p), c in zip(photos, cameras)])
+    decoded = decoded_ahead([None if isinstance(c, _UnreadablePhoto) else p for (_, p), c in zip(photos, cameras)])
     for ((name, path), found), photo in zip(bar, decoded):
         try:  # one unreadable photo is that photo's failure, not the end of the others'
             if isinstance(found, _UnreadablePhoto):
