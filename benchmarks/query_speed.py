@@ -58,7 +58,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene-dir", type=Path, required=True)
     ap.add_argument("--size", help="WxH to resize the queries to (default: as prepared)")
-    variants = [*REFINE, "features-opencv"]  # the last: refinement by features with OpenCV's SIFT
+    variants = [*REFINE, "features-colmap"]  # the last: refinement by features with COLMAP's SIFT on the query
     ap.add_argument("--refine", nargs="+", choices=variants, default=variants)
     ap.add_argument("--warmup", type=int, default=2)
     args = ap.parse_args()
@@ -67,7 +67,7 @@ def main() -> None:
     paths = ScenePaths.of_scene_dir(args.scene_dir)
     rows = {}
     for refine in args.refine:
-        options = RelocalizeOptions(refine="features", features_extractor="opencv") if refine == "features-opencv" \
+        options = RelocalizeOptions(refine="features", features_extractor="colmap") if refine == "features-colmap" \
             else RelocalizeOptions(refine=refine)
         reloc = Relocalizer(paths.map_file, options=options)
         for rgb, intr in photos[: args.warmup]:

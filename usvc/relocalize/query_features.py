@@ -1,8 +1,9 @@
 """SIFT features of a query photo, matched against landmarks from the sfm stage's SIFT.
 
-Two extractors: COLMAP's own (pycolmap, CPU: the landmarks' exact kind of descriptor) and
-OpenCV's (several times faster on CPU), whose descriptors are made L1-root ("RootSIFT") as COLMAP
-normalises its own; both use Lowe's descriptor layout, so they match the same landmarks
+Two extractors: OpenCV's (the default: about 5x faster on CPU) and COLMAP's own (pycolmap, CPU:
+the landmarks' exact kind of descriptor). OpenCV's runs with COLMAP's detector settings, so both
+find the same keypoints at the same positions, and its descriptors are made L1-root ("RootSIFT") as
+COLMAP normalises its own; both use Lowe's descriptor layout, so they match the same landmarks
 (docs/results.md measures both). Keypoints use COLMAP's pixel convention (the top-left pixel's
 centre at (0.5, 0.5)), like every 2D point in usvc.
 """
@@ -43,9 +44,17 @@ def _extractor(max_features: int) -> pycolmap.FeatureExtractor:
     return pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
 
 
+# COLMAP's SIFT detector settings, in OpenCV's terms, so that both find the same keypoints: COLMAP's
+# peak threshold (0.02 / 3 octave layers) is OpenCV's contrast threshold / layers, and COLMAP maps
+# the doubled image's pixel x to 2x exactly, which OpenCV does only with precise upscaling (its
+# default upscaling shifts every keypoint by a quarter pixel).
+OPENCV_CONTRAST_THRESHOLD = 0.02
+
+
 @functools.lru_cache(maxsize=4)
 def _opencv_sift(max_features: int) -> cv2.SIFT:
-    return cv2.SIFT_create(nfeatures=max_features)
+    return cv2.SIFT_create(nfeatures=max_features, contrastThreshold=OPENCV_CONTRAST_THRESHOLD,
+                           enable_precise_upscale=True)
 
 
 def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "colmap") -> QueryFeatures:
