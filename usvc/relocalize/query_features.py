@@ -1,6 +1,6 @@
 """SIFT features of a query photo, matched against landmarks from the sfm stage's SIFT.
 
-Two extractors: OpenCV's (the default: about 5x faster on CPU) and COLMAP's own (pycolmap, CPU:
+Two extractors: OpenCV's (the default: about 4x faster on CPU) and COLMAP's own (pycolmap, CPU:
 the landmarks' exact kind of descriptor). OpenCV's runs with COLMAP's detector settings, so both
 find the same keypoints at the same positions, and its descriptors are made L1-root ("RootSIFT") as
 COLMAP normalises its own; both use Lowe's descriptor layout, so they match the same landmarks
