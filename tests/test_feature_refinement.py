@@ -295,3 +295,22 @@ def cv2_blur(small: np.ndarray) -> np.ndarray:
 
     big = cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC)
     return cv2.GaussianBlur(big, (0, 0), 1.5)
+
+
+def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_threads():
+    """Same config, same bits: OpenCV's SIFT runs parallel loops, and its keypoints (order included,
+    which guided matching's ties follow) must not depend on how many threads it had."""
+    import cv2
+
+    img = cv2_blur((np.random.default_rng(2).random((60, 80)) * 255).astype(np.uint8))
+    before = cv2.getNumThreads()
+    try:
+        runs = []
+        for n in (1, 2, 4):
+            cv2.setNumThreads(n)
+            runs.append(extract_sift(img, 2000, "opencv"))
+    finally:
+        cv2.setNumThreads(before)
+    assert len(runs[0]) > 50
+    for other in runs[1:]:
+        assert np.array_equal(other.uv, runs[0].uv) and np.array_equal(other.descriptor, runs[0].descriptor)
