@@ -48,7 +48,7 @@ class RelocalizeOptions:
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
-    features_extractor: str = "opencv"  # query SIFT: opencv (with COLMAP's detector settings: the same keypoints, about 4x faster on CPU) | colmap (the landmarks' own extractor)
+    features_extractor: str = "opencv"  # query SIFT: opencv (with COLMAP's detector settings: COLMAP's keypoints, most of them, about 4x faster on CPU) | colmap (the landmarks' own extractor)
     features_max_keypoints: int = 4096  # refine=features: SIFT keypoints of the query (at the mapping images' short side)
     features_radii_px: list[float] = field(default_factory=lambda: [96.0, 24.0, 8.0])  # search radius of each guided pass, px at a 480 px short side
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest
