@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -270,6 +271,12 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
     assert not est.success and "looks stretched" in est.rejected and np.isnan(est.R).all()
 
 
+def cv2_blur(small: np.ndarray) -> np.ndarray:
+    """A 240 x 320 image of smooth blobs: SIFT's kind of structure, at several scales."""
+    big = cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC)
+    return cv2.GaussianBlur(big, (0, 0), 1.5)
+
+
 def test_opencv_sift_finds_colmaps_keypoints_where_colmap_finds_them():
     """OpenCV's SIFT with COLMAP's detector settings (precise upscaling, COLMAP's peak threshold)
     lands on COLMAP's own keypoints: OpenCV's default upscaling shifts them by a quarter pixel,
@@ -287,14 +294,6 @@ def test_opencv_sift_finds_colmaps_keypoints_where_colmap_finds_them():
     assert np.all(np.abs(np.median(offset, axis=0)) < 0.02)  # the default upscaling: ~0.24 px on each axis
     agree = np.einsum("ij,ij->i", opencv.descriptor[nearest[near]], colmap.descriptor[near])
     assert np.median(agree) > 0.95
-
-
-def cv2_blur(small: np.ndarray) -> np.ndarray:
-    """A 240 x 320 image of smooth blobs: SIFT's kind of structure, at several scales."""
-    import cv2
-
-    big = cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC)
-    return cv2.GaussianBlur(big, (0, 0), 1.5)
 
 
 def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_threads():
