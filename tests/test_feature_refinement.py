@@ -299,8 +299,6 @@ def test_opencv_sift_finds_colmaps_keypoints_where_colmap_finds_them():
 def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_threads():
     """Same config, same bits: OpenCV's SIFT runs parallel loops, and its keypoints (order included,
     which guided matching's ties follow) must not depend on how many threads it had."""
-    import cv2
-
     img = cv2_blur((np.random.default_rng(2).random((60, 80)) * 255).astype(np.uint8))
     before = cv2.getNumThreads()
     try:
