@@ -113,6 +113,61 @@ def test_guided_matches_stay_within_the_radius_and_are_one_to_one():
     assert len(gl) > 0.9 * N_POINTS and np.mean(gl == gk) > 0.99
 
 
+def _reference_guided(lm_uv, lm_desc, feats, radius, ratio):
+    """Guided matching as its definition reads, on the full matrices: per landmark, the nearest
+    keypoint within the radius (the first on ties), ratio test, then one landmark per keypoint."""
+    sim = lm_desc @ feats.descriptor.T
+    near = np.linalg.norm(lm_uv[:, None] - feats.uv[None], axis=2) <= radius
+    rows, cols, dist = [], [], []
+    for i in range(len(lm_uv)):
+        s = np.where(near[i], sim[i], -np.inf)
+        j = int(np.argmax(s))
+        if not np.isfinite(s[j]):
+            continue
+        s2 = np.max(np.delete(s, j))
+        d1, d2 = np.sqrt(max(2 - 2 * s[j], 0)), np.sqrt(max(2 - 2 * s2, 0)) if np.isfinite(s2) else np.inf
+        if d1 < ratio * d2:
+            rows.append(i), cols.append(j), dist.append(d1)
+    keep = [k for k in range(len(rows)) if all(dist[k] < dist[m] or (dist[k] == dist[m] and k < m)
+                                               for m in range(len(rows)) if cols[m] == cols[k] and m != k)]
+    return np.array([rows[k] for k in keep], np.int64), np.array([cols[k] for k in keep], np.int64)
+
+
+def _reference_global(lm_desc, feats, ratio):
+    """Matching against every landmark as its definition reads: nearest, ratio test, mutual."""
+    sim = feats.descriptor @ lm_desc.T
+    best = np.argmax(sim, axis=1)
+    top2 = -np.sort(-sim, axis=1)[:, :2]
+    d = np.sqrt(np.maximum(2 - 2 * top2, 0))
+    ok = (d[:, 0] < ratio * d[:, 1]) & (np.argmax(sim, axis=0)[best] == np.arange(len(sim)))
+    cols = np.flatnonzero(ok)
+    return best[cols], cols
+
+
+@pytest.mark.parametrize("dense_share", [0, 10**9])  # 0: always the pairs' own descriptors; 10**9: always one product
+def test_guided_and_global_matching_are_their_definitions(dense_share: int, monkeypatch):
+    from usvc.relocalize import feature_refinement
+    monkeypatch.setattr(feature_refinement, "_DENSE_PAIR_SHARE", dense_share)
+    monkeypatch.setattr(feature_refinement, "_CHUNK", 96)  # several blocks of landmarks
+    monkeypatch.setattr(feature_refinement, "_PAIRS", 500)  # several blocks of pairs
+    landmarks, feats = scene(3)
+    desc = unit_descriptors(landmarks.descriptor)
+    R, t = prior(2.0, 0.02)  # off the true pose: landmarks project a few px from their keypoints
+    idx, uv = visible_landmarks(landmarks, CAM, R, t, 45.0)
+    for radius in (1.0, 4.0, 12.0, 40.0):
+        got, want = guided_matches(uv, desc[idx], feats, radius, 0.8), _reference_guided(uv, desc[idx], feats,
+                                                                                          radius, 0.8)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), radius
+    # a second, noisier keypoint for 50 landmarks: its nearest landmark is the first one's, so only
+    # the mutual check keeps it out
+    rng = np.random.default_rng(4)
+    twins = QueryFeatures(np.concatenate([feats.uv, feats.uv[:50] + 1.0]), np.concatenate(
+        [feats.descriptor, unit_descriptors(feats.descriptor[:50] + 0.03 * rng.random((50, 128)))]).astype(np.float32))
+    got, want = global_matches(desc, twins, 0.8), _reference_global(desc, twins, 0.8)
+    assert len(want[0]) > N_POINTS / 2 and len(np.unique(want[0])) == len(want[0])
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
 def test_landmarks_behind_or_seen_from_the_other_side_are_not_candidates():
     landmarks, _ = scene()
     flipped = Landmarks("synthetic", landmarks.xyz, landmarks.descriptor, -landmarks.view_dir,

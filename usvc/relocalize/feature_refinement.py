@@ -40,6 +40,7 @@ VERIFIED_MAX_ERROR_PX = 4.0
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
 _DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product
+_DENSE_PAIR_SHARE = 16  # guided matching: one product when the pairs in reach are >= 1/16 of its entries
 
 
 @dataclass(frozen=True)
@@ -94,19 +95,6 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
     return idx, uv[idx]
 
 
-def _best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of a similarity block: the column of the largest entry, the largest and the second
-    largest (-inf when the row has one column). Two passes over the block, no sort."""
-    rows = np.arange(len(sim))
-    first = np.argmax(sim, axis=1)
-    s1 = sim[rows, first]
-    if sim.shape[1] == 1:
-        return first, s1, np.full(len(sim), -np.inf, dtype=sim.dtype)
-    masked = sim.copy()
-    masked[rows, first] = -np.inf
-    return first, s1, masked.max(axis=1)
-
-
 def _distance(sim: np.ndarray) -> np.ndarray:
     """Euclidean distance of unit descriptors from their dot product (inf for -inf)."""
     return np.where(np.isfinite(sim), np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0)), np.inf).astype(np.float32)
@@ -121,67 +109,92 @@ def _one_to_one(rows: np.ndarray, cols: np.ndarray, dist: np.ndarray) -> tuple[n
     return rows[sel], cols[sel]
 
 
+def _row_best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row: the column of the largest entry (the first on ties), the largest and the second
+    largest (-inf where the row has no other). Overwrites each row's largest entry with -inf:
+    reductions along rows only, the contiguous (fast) direction, and no copy."""
+    rows = np.arange(len(sim))
+    first = np.argmax(sim, axis=1)
+    s1 = sim[rows, first]
+    sim[rows, first] = -np.inf
+    s2 = sim.max(axis=1) if sim.shape[1] > 1 else np.full(len(sim), -np.inf, sim.dtype)
+    return first, s1, s2
+
+
+def _ratio_test(s1: np.ndarray, s2: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(passes Lowe's ratio test, nearest distance) from the two largest similarities."""
+    d1, d2 = _distance(s1), _distance(s2)
+    return np.isfinite(d1) & (d1 < ratio * d2), d1
+
+
 def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures, radius: float,
                    ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """(landmark rows, keypoint rows) matched within `radius` px of each landmark's projection.
+    """(landmark rows, keypoint rows) matched within `radius` px of each landmark's projection:
+    each landmark's nearest keypoint by descriptor among those within the radius (the first on
+    ties), Lowe's ratio test against the second nearest there, one landmark per keypoint.
 
-    Only the (landmark, keypoint) pairs within the radius are compared: a kd-tree lists them, their
-    descriptor distances are computed pair by pair, and each landmark's nearest and second nearest
-    keypoint come from a segmented maximum over its pairs (no landmarks x keypoints matrix)."""
+    A kd-tree lists the (landmark, keypoint) pairs within the radius. Where they are many (a wide
+    radius), one landmarks x keypoints product gives every similarity and the pairs outside the
+    radius are masked; where they are few, only the pairs' descriptors are compared, and a segmented
+    maximum over each landmark's pairs finds its nearest two."""
     empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(lm_uv) == 0 or len(feats) == 0:
         return empty
     pairs = cKDTree(lm_uv).sparse_distance_matrix(cKDTree(feats.uv), radius, output_type="ndarray")
     if len(pairs) == 0:
         return empty
-    key = pairs["i"].astype(np.int64) * len(feats) + pairs["j"]
-    order = np.argsort(key)  # by landmark, then keypoint (unique keys): the same order every run
-    lm, kp = pairs["i"][order].astype(np.int64), pairs["j"][order].astype(np.int64)
+    lm, kp = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    cells = len(lm_uv) * len(feats)
+    if cells <= _DENSE_SIMILARITY and len(lm) * _DENSE_PAIR_SHARE >= cells:
+        sim = lm_desc @ feats.descriptor.T  # every similarity at once, then the radius as a mask
+        masked = np.full_like(sim, -np.inf)
+        masked[lm, kp] = sim[lm, kp]
+        first, s1, s2 = _row_best_two(masked)
+        ok, d1 = _ratio_test(s1, s2, ratio)  # a landmark with no keypoint in reach has s1 = -inf: fails
+        rows = np.flatnonzero(ok)
+        return _one_to_one(rows, first[rows], d1[rows])
+    order = np.argsort(lm * len(feats) + kp)  # by landmark, then keypoint (unique keys): the same order every run
+    lm, kp = lm[order], kp[order]
     starts = np.flatnonzero(np.r_[True, lm[1:] != lm[:-1]])
     rows_with, counts = lm[starts], np.diff(np.r_[starts, len(lm)])
-    if len(rows_with) * len(feats) <= _DENSE_SIMILARITY:  # one product, then a gather: fastest
-        sim = (lm_desc[rows_with] @ feats.descriptor.T)[np.repeat(np.arange(len(rows_with)), counts), kp]
-    else:
-        sim = np.empty(len(kp), np.float32)
-        for a in range(0, len(kp), _PAIRS):  # bounded memory: _PAIRS x 128 floats per side
-            b = min(a + _PAIRS, len(kp))
-            sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.descriptor[kp[a:b]])
+    sim = np.empty(len(kp), np.float32)
+    for a in range(0, len(kp), _PAIRS):  # bounded memory: _PAIRS x 128 floats per side
+        b = min(a + _PAIRS, len(kp))
+        sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.descriptor[kp[a:b]])
     best = np.maximum.reduceat(sim, starts)
-    is_best = sim == np.repeat(best, counts)
     # the first pair of each landmark that reaches its best similarity
-    first = np.flatnonzero(is_best)
+    first = np.flatnonzero(sim == np.repeat(best, counts))
     first = first[np.concatenate([[True], lm[first][1:] != lm[first][:-1]])]
-    masked = sim.copy()
-    masked[first] = -np.inf
-    second = np.maximum.reduceat(masked, starts)  # -inf for a landmark with one candidate
-    d1 = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
-    d2 = np.where(np.isfinite(second), np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0)), np.inf)
-    ok = d1 < ratio * d2
+    sim[first] = -np.inf
+    second = np.maximum.reduceat(sim, starts)  # -inf for a landmark with one candidate
+    ok, d1 = _ratio_test(best, second, ratio)
     return _one_to_one(rows_with[ok], kp[first][ok], d1[ok])
 
 
 def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """(landmark rows, keypoint rows): each keypoint's nearest landmark by descriptor, ratio test
-    against the second nearest landmark, mutual (the keypoint is also the landmark's nearest)."""
+    against the second nearest landmark, mutual (the keypoint is also the landmark's nearest: the
+    first keypoint that reaches the landmark's largest similarity)."""
     k = len(feats)
     if k == 0 or len(lm_desc) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
     best_i = np.zeros(k, dtype=np.int64)
-    lm_best = np.zeros(len(lm_desc), dtype=np.int64)
+    lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
     for start in range(0, len(lm_desc), _CHUNK):
         sim = feats.descriptor @ lm_desc[start:start + _CHUNK].T  # (K, chunk): per keypoint along rows
-        lm_best[start:start + sim.shape[1]] = np.argmax(sim, axis=0)
-        first, s1, s2 = _best_two(sim)
-        new_first = s1 > best_s[:, 0]
-        best_i = np.where(new_first, first + start, best_i)
+        lm_max[start:start + sim.shape[1]] = sim.max(axis=0)
+        first, s1, s2 = _row_best_two(sim)
+        best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
         cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
         cand.sort(axis=1)
         best_s = cand[:, :1:-1]  # the two largest, largest first
-    d1, d2 = _distance(best_s[:, 0]), _distance(best_s[:, 1])
-    ok = np.isfinite(d1) & (d1 < ratio * d2)
-    ok &= lm_best[best_i] == np.arange(k)
-    cols = np.flatnonzero(ok)
+    reach = np.flatnonzero(best_s[:, 0] == lm_max[best_i])  # keypoints that reach their landmark's largest ...
+    _, once = np.unique(best_i[reach], return_index=True)  # ... the first of them per landmark: mutual
+    ok, _ = _ratio_test(best_s[:, 0], best_s[:, 1], ratio)
+    mutual = np.zeros(k, dtype=bool)
+    mutual[reach[once]] = True
+    cols = np.flatnonzero(ok & mutual)
     return best_i[cols], cols
 
 
