@@ -263,3 +263,25 @@ def test_without_intrinsics_a_feature_pose_needs_a_focal_length_with_evidence(tm
     est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), None)
     assert not est.success and "no focal length to trust" in est.rejected, est.rejected
     assert "Give its intrinsics" in est.rejected and re.search(r"confidence 0\.0\d+ < min_confidence 0\.1", est.rejected)
+
+
+@pytest.mark.parametrize("judges", [True, False])
+def test_where_only_the_map_could_tell_the_focal_length_it_judges_if_it_can(tmp_path: Path, monkeypatch, judges: bool):
+    """A shallow view (the features cannot tell the focal length) of a map that reads the photo:
+    the map's verdict decides where the map tells its own photos' focal lengths; where it does not
+    (`map_judges_focal` False, from its `focal_error`), the answer stands with a warning."""
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
+    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict", lambda *a, **k: relocalizer_module.FOCAL_UNOBSERVABLE)
+    monkeypatch.setattr(Relocalizer, "_focal_disagreement",
+                        lambda *a, **k: "the image implies a focal length 2.00x the given one")
+    reloc = Relocalizer(path, tmp_path / "encoder.pt")
+    reloc.map_judges_focal = judges
+    est = reloc.localize(photo(), CAM)
+    if judges:
+        assert not est.success and est.rejected.startswith("the image implies a focal length 2.00x")
+        assert not any("not checked" in w for w in est.warnings)
+    else:
+        assert est.success and est.refine_path == "guided" and errors(est.R, est.t)[0] < 0.2
+        assert any(w.startswith("the given focal length was not checked") and "does not tell its own" in w
+                   for w in est.warnings)

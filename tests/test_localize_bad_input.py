@@ -107,7 +107,7 @@ def test_stretch_verdict_needs_clearly_more_support() -> None:
     """The check itself: nothing to say where a square-pixel camera explains the cells."""
     points = exact_coordinates(15, 20, CENTRED).reshape(-1, 3)
     from usvc.model.encoder import cell_centers
-    from usvc.relocalize.pnp import estimate_focal_pose
+    from usvc.core.absolute_pose import estimate_focal_pose
 
     pixels = cell_centers(15, 20, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
     found = estimate_focal_pose(pixels, points, 160, 120, 2.5)

@@ -46,6 +46,7 @@ def rewrite(src: Path, dst: Path, edit, checksum: str = "keep") -> Path:
     ("scene", 7, r"metadata scene=7 must be a non-empty string"),
     ("iterations", -1, r"metadata iterations=-1 must be a non-negative integer"),
     ("focal_range", [0.9, 0.5], r"metadata focal_range=\[0.9, 0.5\] must be \[low, high\]"),
+    ("focal_error", float("inf"), r"metadata focal_error=inf must be a finite number >= 0"),
 ])
 def test_map_metadata_out_of_range_is_named(tiny_map: tuple[Path, Path], tmp_path: Path, field: str, value: object,
                                             match: str) -> None:

@@ -142,7 +142,7 @@ def check_encoder_entry(encoder: Mapping[str, Any], where: str) -> None:
 
 def check_metadata(metadata: Mapping[str, Any], where: str) -> None:
     """The fields the code reads, where present: short_side, median_depth, scene, encoder_file,
-    model, method, precision, seed, iterations, final_loss, focal_range."""
+    model, method, precision, seed, iterations, final_loss, focal_range, focal_error."""
     low, high = SHORT_SIDE_RANGE
     checks: dict[str, tuple[Callable[[Any], bool], str]] = {
         "short_side": (lambda v: _is_int(v) and low <= v <= high, f"an integer in [{low}, {high}] (px)"),
@@ -159,6 +159,8 @@ def check_metadata(metadata: Mapping[str, Any], where: str) -> None:
         "focal_range": (lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(
             _is_number(x) and math.isfinite(x) and x > 0 for x in v) and v[0] <= v[1],
                         "[low, high]: the mapping cameras' focal lengths over their long side, 0 < low <= high"),
+        "focal_error": (lambda v: _is_number(v) and math.isfinite(v) and v >= 0,
+                        "a finite number >= 0: |ln(estimated / known focal)| of the map's own views, 90th percentile"),
     }
     for key, (ok, want) in checks.items():
         if key in metadata and not ok(metadata[key]):

@@ -21,17 +21,13 @@ import cv2
 import numpy as np
 import pycolmap
 
+from usvc.core.absolute_pose import RANSAC_CONFIDENCE, RANSAC_MAX_TRIALS, absolute_pose_options
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
 from usvc.relocalize.options import BACKENDS
 
 log = logging.getLogger(__name__)
 
-_CONFIDENCE = 0.99999
-_MAX_TRIALS = 10000
-# COLMAP caps its trial count by the inlier ratio it assumes at worst; dense SCR output can sit
-# well below COLMAP's default of 0.1, so assume less rather than give up early.
-_MIN_INLIER_RATIO = 0.02
 _REFINE_ROUNDS = 10
 
 
@@ -138,8 +134,8 @@ def _solve_opencv(
     # at 85 % outliers in benchmarks/pnp_solvers.py for the same accuracy.
     params = cv2.UsacParams()
     params.threshold = float(max_error_px)
-    params.confidence = _CONFIDENCE
-    params.maxIterations = _MAX_TRIALS
+    params.confidence = RANSAC_CONFIDENCE
+    params.maxIterations = RANSAC_MAX_TRIALS
     params.randomGeneratorState = int(seed)
     params.sampler = cv2.SAMPLING_UNIFORM
     params.score = cv2.SCORE_METHOD_MSAC
@@ -162,77 +158,17 @@ def _solve_opencv(
     return R, tvec.reshape(3), inliers
 
 
-def _absolute_pose_options(max_error_px: float, seed: int) -> pycolmap.AbsolutePoseEstimationOptions:
-    """pycolmap's RANSAC settings shared by the pose and the pose-with-focal solvers."""
-    est = pycolmap.AbsolutePoseEstimationOptions()
-    est.ransac.max_error = max_error_px
-    est.ransac.random_seed = seed
-    est.ransac.confidence = _CONFIDENCE
-    est.ransac.max_num_trials = _MAX_TRIALS
-    est.ransac.min_inlier_ratio = _MIN_INLIER_RATIO
-    return est
-
-
 def _solve_pycolmap(
     p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
-    est = _absolute_pose_options(max_error_px, seed)
+    est = absolute_pose_options(max_error_px, seed)
     ref = pycolmap.AbsolutePoseRefinementOptions()
     res = pycolmap.estimate_and_refine_absolute_pose(p2, p3, cam, est, ref)
     if res is None:
         return None
     pose = res["cam_from_world"]
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), np.asarray(res["inlier_mask"], bool)
-
-
-@dataclass
-class FocalPose:
-    """A focal length estimated with the pose (P4Pf): the camera, the pose and its inliers."""
-
-    camera: Camera
-    R: np.ndarray
-    t: np.ndarray
-    inlier_mask: np.ndarray
-
-
-def estimate_focal_pose(
-    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
-) -> FocalPose | None:
-    """The focal length of an uncalibrated photo with its pose (pycolmap's P4Pf LO-RANSAC, then
-    refinement of pose and focal); principal point at the image centre. None when no pose
-    explains enough correspondences (or fewer than 8 finite ones are given)."""
-    p2 = np.asarray(points2d, dtype=np.float64).reshape(-1, 2)
-    p3 = np.asarray(points3d, dtype=np.float64).reshape(-1, 3)
-    finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
-    if finite.sum() < 8:
-        return None
-    # COLMAP's prior for a camera without calibration: 1.2 x the longer side.
-    cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=width, height=height,
-                          params=[1.2 * max(width, height), width / 2, height / 2])
-    est = _absolute_pose_options(max_error_px, seed)
-    est.estimate_focal_length = True
-    ref = pycolmap.AbsolutePoseRefinementOptions()
-    ref.refine_focal_length = True
-    res = pycolmap.estimate_and_refine_absolute_pose(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]),
-                                                     cam, est, ref)
-    f = float(cam.params[0])  # refined in place
-    if res is None or not (np.isfinite(f) and f > 0):
-        return None
-    mask = np.zeros(len(p2), dtype=bool)
-    mask[np.flatnonzero(finite)] = np.asarray(res["inlier_mask"], bool).reshape(-1)
-    pose = res["cam_from_world"]
-    return FocalPose(Camera("SIMPLE_PINHOLE", width, height, (f, width / 2, height / 2)), pose.rotation.matrix(),
-                     np.asarray(pose.translation, dtype=np.float64), mask)
-
-
-def estimate_focal(
-    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, max_error_px: float, seed: int = 0,
-) -> Camera | None:
-    """The focal length of an uncalibrated photo, estimated with its pose (`estimate_focal_pose`):
-    a SIMPLE_PINHOLE camera, or None when no pose explains enough correspondences."""
-    found = estimate_focal_pose(points2d, points3d, width, height, max_error_px, seed)
-    return None if found is None else found.camera
 
 
 def support_at(camera: Camera, points2d: np.ndarray, points3d: np.ndarray, R: np.ndarray, t: np.ndarray,

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
 from usvc.core.images import Photo, read_photo
@@ -31,14 +32,7 @@ from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, refine_by_features
-from usvc.relocalize.pnp import (
-    PnPResult,
-    estimate_focal,
-    estimate_focal_pose,
-    reprojection_inliers,
-    solve_pnp,
-    support_at,
-)
+from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp, support_at
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
 from usvc.relocalize.camera_checks import (
     FOCAL_OBSERVABLE_FRACTION,
@@ -63,6 +57,11 @@ MIN_CONTRAST = 1.0 / 255.0
 
 CAMERA_FOV = "crop"
 FOCAL_UNOBSERVABLE = "unobservable"
+FOCAL_UNCHECKED = ("the given focal length was not checked: this view is too shallow for the photo's features to "
+                   "tell it, and the map did not read the photo well enough to; a wrong one would move the pose "
+                   "along the optical axis")
+FOCAL_UNCHECKED_MAP = (" (this map does not tell its own photos' focal lengths within focal_tolerance: "
+                       "a longer training lets it)")
 # The learned pose "describes" the photo when it is this close to the feature pose.
 AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5
 FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features  # a distorted query is undistorted as prepare undistorts mapping images
@@ -135,6 +134,14 @@ class Relocalizer:
         self.map_path = Path(map_path)
         spread = self.metadata.get("focal_range")  # checked on load; maps before it have none
         self.focal_range = (float(spread[0]), float(spread[1])) if spread is not None else None
+        # The map judges a given focal length only if it tells its own views' within the tolerance
+        # (usvc.train.focal_calibration; maps before that measure judge, as they did)
+        error = self.metadata.get("focal_error")
+        self.map_judges_focal = bool(error is None or float(error) <= np.log1p(self.options.focal_tolerance))
+        if not self.map_judges_focal and self.options.focal_tolerance > 0:
+            log.info("map %s implies its own views' focal lengths only within %.0f %% (90th percentile), over "
+                     "focal_tolerance %g: the map does not judge given focal lengths, the photos' features do",
+                     map_path, 100 * (np.exp(float(error)) - 1), self.options.focal_tolerance)
         self.keypoints_xyz = map_keypoints(header)
         depth = self.metadata.get("median_depth")
         self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
@@ -340,6 +347,9 @@ class Relocalizer:
             if feature_rejected == FOCAL_UNOBSERVABLE:
                 feature_rejected = self._focal_without_global_evidence(
                     result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source)
+                if feature_rejected == FOCAL_UNOBSERVABLE:  # nothing tells: the answer stands, with a doubt
+                    feature_rejected = ""
+                    warnings.append(FOCAL_UNCHECKED + (FOCAL_UNCHECKED_MAP if not self.map_judges_focal else ""))
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
@@ -349,7 +359,9 @@ class Relocalizer:
         by_features = path in FEATURE_PATHS
         if result.success and not by_features and not rejected:
             # the learned pose is the answer (no landmarks, or no feature pose): its own evidence judges it
-            if intrinsics is not None and self.options.focal_tolerance > 0:
+            if intrinsics is not None and self.options.focal_tolerance > 0 and not self.map_judges_focal:
+                warnings.append("the given focal length was not checked" + FOCAL_UNCHECKED_MAP)
+            elif intrinsics is not None and self.options.focal_tolerance > 0:
                 rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
             elif intrinsics is None:  # a square-pixel focal estimated: stretched?
                 rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
@@ -383,14 +395,16 @@ class Relocalizer:
     def _focal_without_global_evidence(self, dense: PnPResult, feature: FeatureResult, evidence: QueryEvidence,
                                        pixels: np.ndarray, coords: np.ndarray, camera: Camera | None,
                                        threshold: float, cells: int, source: str) -> str:
-        """Why the given focal length is wrong ("" when nothing says so) when the matches to every
-        landmark cannot tell, from the next evidence in order: the map's coordinates where they
+        """Why the given focal length is wrong ("" when it is right, FOCAL_UNOBSERVABLE when nothing
+        tells) when the matches to every landmark cannot tell, from the next evidence in order: the
+        map's coordinates where they
         read this photo well (the learned pose agrees with the features' and min_confidence of the
         cells agree with it); else SIFT + PnP's verified matches (P4Pf); else the map's coordinates
         where the learned pose at least agrees with the features'. The map judges at a wider
         tolerance since it is coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still
-        fails); a photo it cannot read (turned sideways) gives it no say."""
-        agree = bool(self.prior and dense.success and feature.success and camera is not None
+        fails); a photo it cannot read (turned sideways) gives it no say, nor does a map that does
+        not tell its own views' focal lengths within the tolerance (`map_judges_focal`)."""
+        agree = bool(self.prior and self.map_judges_focal and dense.success and feature.success and camera is not None
                      and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
         wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
         if agree and dense.num_inliers >= self.options.min_confidence * cells:
@@ -403,7 +417,7 @@ class Relocalizer:
         if agree:
             assert camera is not None
             return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
-        return ""  # nothing contradicts the given focal length
+        return FOCAL_UNOBSERVABLE  # nothing tells: nothing contradicts the given focal length either
 
     def _unsupported_focal(self, camera: Camera, dense_inliers: int, cells: int, from_map: bool) -> str:
         """Why a feature pose of a photo without intrinsics is no answer: its focal length came

@@ -17,6 +17,7 @@ from usvc.model.head import Regressor
 from usvc.model.map_file import save_map
 from usvc.model.options import ModelOptions
 from usvc.sfm.tracks_file import read_median_depth, read_tracks
+from usvc.train.focal_calibration import map_focal_error
 from usvc.train.options import TrainOptions
 from usvc.train.trainer import train_head
 from usvc.weights import load_configured_encoder
@@ -57,14 +58,16 @@ def run(inputs: Inputs, out: Path, options: TrainOptions, model: ModelOptions, *
     median_depth = read_median_depth(inputs.tracks)
     head, summary = train_head(buf, median_depth, options, head_width=model.head_width,
                                head_blocks=model.head_blocks, seed=seed, heldout=heldout, device=device)
+    focal_error = map_focal_error(head, buf, summary["precision"], device, seed)
     metadata = {"scene": scene, "short_side": int(attrs["short_side"]), "median_depth": median_depth,
                 "encoder_file": weights.name, "model": model.name, "method": method,
                 "train": asdict(options), "precision": summary["precision"], "seed": seed,
                 "iterations": summary["iterations"], "final_loss": summary["final_loss"],  # no timings: same bytes
-                "focal_range": focal_range(tracks.K)}
+                "focal_range": focal_range(tracks.K), "focal_error": focal_error["p90"]}
     # The kept keypoints travel with the map: query-time refinement projects them (paper 3.2.2).
     save_map(out / MAP_PT, Regressor(encoder, head), metadata,
              keypoints_xyz=buf.keypoint_xyz if buf.has_keypoints else None)
-    stats = {**summary, "map_megabytes": (out / MAP_PT).stat().st_size / 2**20}
-    log.info("train %s: map %.2f MB", scene, stats["map_megabytes"])
+    stats = {**summary, "map_megabytes": (out / MAP_PT).stat().st_size / 2**20, "focal_error": focal_error}
+    log.info("train %s: map %.2f MB; its coordinates imply its views' focal lengths within %.1f %% (90th percentile "
+             "of %d views)", scene, stats["map_megabytes"], 100 * (np.exp(focal_error["p90"]) - 1), focal_error["views"])
     return stats
