@@ -272,7 +272,9 @@ def test_where_only_the_map_could_tell_the_focal_length_it_judges_if_it_can(tmp_
     (`map_judges_focal` False, from its `focal_error`), the answer stands with a warning."""
     landmarks, feats = scene()
     path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
-    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict", lambda *a, **k: relocalizer_module.FOCAL_UNOBSERVABLE)
+    asked: list[bool] = []  # verified=... of each call: which evidence was asked for the focal length
+    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict", lambda *a, verified=False, **k: asked.append(verified)
+                        or relocalizer_module.FOCAL_UNOBSERVABLE)
     monkeypatch.setattr(Relocalizer, "_focal_disagreement",
                         lambda *a, **k: "the image implies a focal length 2.00x the given one")
     reloc = Relocalizer(path, tmp_path / "encoder.pt")
@@ -285,3 +287,5 @@ def test_where_only_the_map_could_tell_the_focal_length_it_judges_if_it_can(tmp_
         assert est.success and est.refine_path == "guided" and errors(est.R, est.t)[0] < 0.2
         assert any(w.startswith("the given focal length was not checked") and "does not tell its own" in w
                    for w in est.warnings)
+        assert asked == [False]  # not SIFT + PnP's matches: in a shallow view they cannot tell either
+        assert est.to_json().get("verified") is None

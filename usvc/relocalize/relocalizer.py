@@ -60,8 +60,9 @@ FOCAL_UNOBSERVABLE = "unobservable"
 FOCAL_UNCHECKED = ("the given focal length was not checked: this view is too shallow for the photo's features to "
                    "tell it, and the map did not read the photo well enough to; a wrong one would move the pose "
                    "along the optical axis")
-FOCAL_UNCHECKED_MAP = (" (this map does not tell its own photos' focal lengths within focal_tolerance: "
-                       "a longer training lets it)")
+FOCAL_UNCHECKED_MAP = ("the given focal length was not checked: this map does not tell its own photos' focal lengths "
+                       "within focal_tolerance (a longer training lets it), and this view is too shallow for the "
+                       "photo's features to; a wrong one would move the pose along the optical axis")
 # The learned pose "describes" the photo when it is this close to the feature pose.
 AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5
 FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features  # a distorted query is undistorted as prepare undistorts mapping images
@@ -349,7 +350,7 @@ class Relocalizer:
                     result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source)
                 if feature_rejected == FOCAL_UNOBSERVABLE:  # nothing tells: the answer stands, with a doubt
                     feature_rejected = ""
-                    warnings.append(FOCAL_UNCHECKED + (FOCAL_UNCHECKED_MAP if not self.map_judges_focal else ""))
+                    warnings.append(FOCAL_UNCHECKED if self.map_judges_focal else FOCAL_UNCHECKED_MAP)
             if feature.success and not feature_rejected:
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
@@ -360,7 +361,8 @@ class Relocalizer:
         if result.success and not by_features and not rejected:
             # the learned pose is the answer (no landmarks, or no feature pose): its own evidence judges it
             if intrinsics is not None and self.options.focal_tolerance > 0 and not self.map_judges_focal:
-                warnings.append("the given focal length was not checked" + FOCAL_UNCHECKED_MAP)
+                warnings.append("the given focal length was not checked: this map does not tell its own photos' "
+                                "focal lengths within focal_tolerance (a longer training lets it)")
             elif intrinsics is not None and self.options.focal_tolerance > 0:
                 rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
             elif intrinsics is None:  # a square-pixel focal estimated: stretched?
@@ -410,6 +412,8 @@ class Relocalizer:
         if agree and dense.num_inliers >= self.options.min_confidence * cells:
             assert camera is not None
             return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
+        if not self.map_judges_focal:  # a shallow view of a map that cannot judge: SIFT + PnP's matches
+            return FOCAL_UNOBSERVABLE  # would cost a second and cannot tell either (docs/confidence.md)
         verdict = self._feature_focal_verdict(evidence, source, verified=True)
         feature.verified, feature.verified_seconds = evidence.verified_record(), evidence.verified_seconds()
         if verdict != FOCAL_UNOBSERVABLE:
