@@ -21,9 +21,10 @@ FOCAL_UNOBSERVABLE = "unobservable"
 FOCAL_UNCHECKED = ("the given focal length was not checked: this view is too shallow for the photo's features to "
                    "tell it, and the map did not read the photo well enough to; a wrong one would move the pose "
                    "along the optical axis")
-FOCAL_UNCHECKED_MAP = ("the given focal length was not checked: this map does not tell its own photos' focal lengths "
-                       "within focal_tolerance (a longer training lets it), and this view is too shallow for the "
-                       "photo's features to; a wrong one would move the pose along the optical axis")
+MAP_DOES_NOT_JUDGE = ("the given focal length was not checked: this map does not tell its own photos' focal lengths "
+                      "within focal_tolerance (a longer training lets it)")
+FOCAL_UNCHECKED_MAP = (MAP_DOES_NOT_JUDGE + ", and this view is too shallow for the photo's features to; a wrong one "
+                       "would move the pose along the optical axis")
 # The learned pose "describes" the photo when it is this close to the feature pose.
 AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5
 
@@ -77,21 +78,20 @@ class FocalVerdicts:
                                        threshold: float, cells: int, source: str) -> str:
         """Why the given focal length is wrong ("" when it is right, FOCAL_UNOBSERVABLE when nothing
         tells) when the matches to every landmark cannot tell, from the next evidence in order: the
-        map's coordinates where they
-        read this photo well (the learned pose agrees with the features' and min_confidence of the
+        map's coordinates where they read this photo well (the learned pose agrees with the features' and min_confidence of the
         cells agree with it); else SIFT + PnP's verified matches (P4Pf); else the map's coordinates
         where the learned pose at least agrees with the features'. The map judges at a wider
         tolerance since it is coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still
         fails); a photo it cannot read (turned sideways) gives it no say, nor does a map that does
         not tell its own views' focal lengths within the tolerance (`map_judges_focal`)."""
-        agree = bool(self.prior and self.map_judges_focal and dense.success and feature.success and camera is not None
+        if not self.map_judges_focal:  # a shallow view of a map that cannot judge: SIFT + PnP's matches
+            return FOCAL_UNOBSERVABLE  # would cost a second and cannot tell either (docs/confidence.md)
+        agree = bool(self.prior and dense.success and feature.success and camera is not None
                      and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
         wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
         if agree and dense.num_inliers >= self.options.min_confidence * cells:
             assert camera is not None
             return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
-        if not self.map_judges_focal:  # a shallow view of a map that cannot judge: SIFT + PnP's matches
-            return FOCAL_UNOBSERVABLE  # would cost a second and cannot tell either (docs/confidence.md)
         verdict = self._feature_focal_verdict(evidence, source, verified=True)
         feature.verified, feature.verified_seconds = evidence.verified_record(), evidence.verified_seconds()
         if verdict != FOCAL_UNOBSERVABLE:

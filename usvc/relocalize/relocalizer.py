@@ -31,7 +31,13 @@ from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, refine_by_features
-from usvc.relocalize.focal_verdicts import FOCAL_UNCHECKED, FOCAL_UNCHECKED_MAP, FOCAL_UNOBSERVABLE, FocalVerdicts
+from usvc.relocalize.focal_verdicts import (
+    FOCAL_UNCHECKED,
+    FOCAL_UNCHECKED_MAP,
+    FOCAL_UNOBSERVABLE,
+    MAP_DOES_NOT_JUDGE,
+    FocalVerdicts,
+)
 from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
 from usvc.relocalize.camera_checks import (
@@ -317,8 +323,7 @@ class Relocalizer(FocalVerdicts):
         if result.success and not by_features and not rejected:
             # the learned pose is the answer (no landmarks, or no feature pose): its own evidence judges it
             if intrinsics is not None and self.options.focal_tolerance > 0 and not self.map_judges_focal:
-                warnings.append("the given focal length was not checked: this map does not tell its own photos' "
-                                "focal lengths within focal_tolerance (a longer training lets it)")
+                warnings.append(MAP_DOES_NOT_JUDGE)
             elif intrinsics is not None and self.options.focal_tolerance > 0:
                 rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
             elif intrinsics is None:  # a square-pixel focal estimated: stretched?
