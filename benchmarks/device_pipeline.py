@@ -18,6 +18,8 @@ device). It writes `results/benchmarks/device_pipeline_<device>_<scene>.json`:
     python benchmarks/device_pipeline.py --device cuda                   # the bundled scene
     python benchmarks/device_pipeline.py --device cuda --scene mini --scene office
     python benchmarks/device_pipeline.py --device cpu -- train.iterations=200   # a quick check here
+    python benchmarks/device_pipeline.py --device cuda --scene office --work W --from sfm --no-repeat
+        # W/office/data/office/prepared (and W/office/results/office/prepared.json) made elsewhere
 
 A real scene needs its raw data where its config points (`data/raw/<scene>`, see the README).
 Run it on an otherwise idle machine.
@@ -81,12 +83,12 @@ def head_throughput(data: Path, scene: str, device: str, overrides: list[str], b
 
 
 def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env: dict[str, str],
-                  batch_sizes: list[int], head_iterations: int) -> dict:
+                  batch_sizes: list[int], head_iterations: int, first: str = STAGES[0], repeat: bool = True) -> dict:
     data, results = work / "data", work / "results"
     common = [f"device={device}", f"data_dir={data}", f"results_dir={results}", f"hydra.run.dir={work / 'logs'}"]
     if scene == "mini":
         common.append(f"scene.path={data / 'raw' / scene}")
-    stages = [s for s in STAGES if s != "generate" or scene == "mini"]
+    stages = [s for s in STAGES[STAGES.index(first):] if s != "generate" or scene == "mini"]
     rows = []
     t0 = time.perf_counter()
     for stage in stages:
@@ -103,15 +105,17 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
     reloc = {**read_json(paths.metrics("relocalize")), **timing_record(results / scene, "relocalize")}
     metrics = read_json(paths.metrics("metrics"))
     map_file = paths.map / MAP_PT
-    first = _md5(map_file)
-    repeat = run_stage("train", scene, [*common, *overrides], env)["seconds"]
+    digest = _md5(map_file)
+    repeat_seconds = run_stage("train", scene, [*common, *overrides], env)["seconds"] if repeat else None
     result = {
         "scene": scene, "device": device, "overrides": overrides,
         "device_name": next((r["device_name"] for r in rows if r["stage"] == "train"), None),
         "total_seconds": round(total, 1), "stages": rows,
         "train": {k: train.get(k) for k in ("iterations", "samples_seen", "precision", "train_seconds",
-                                            "samples_per_second", "final_loss", "final_reproj_median_px")},
-        "train_repeat_wall_seconds": repeat, "same_map_twice": _md5(map_file) == first,
+                                            "samples_per_second", "final_loss", "final_reproj_median_px",
+                                            "cuda_graph")},
+        "first_stage": stages[0], "train_repeat_wall_seconds": repeat_seconds,
+        "same_map_twice": _md5(map_file) == digest if repeat else None,
         "relocalize": {k: reloc.get(k) for k in ("ms_per_query", "ms_network", "ms_refine", "ms_pnp", "ms_fallback",
                                                  "queries", "answer_paths", "fallback_runs")},
         "metrics": {k: metrics[k] for k in METRICS if k in metrics},
@@ -130,6 +134,9 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="*", default=[2048, 8192, 32768],
                         help="batch sizes at which to time the head's steps alone (none: skip)")
     parser.add_argument("--head-iterations", type=int, default=300)
+    parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0],
+                        help="first stage to run; the earlier stages' outputs must be in --work already")
+    parser.add_argument("--no-repeat", action="store_true", help="skip training the map a second time")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every stage (after --)")
     args = parser.parse_args()
     from usvc.core.device import resolve_device
@@ -139,13 +146,16 @@ def main() -> None:
         device = resolve_device(args.device)
     except UsvcError as exc:
         raise SystemExit(str(exc)) from None
+    if args.first not in STAGES[:2] and args.work is None:
+        raise SystemExit(f"--from {args.first} needs --work: the folder that holds the earlier stages' outputs")
     env = dict(os.environ)
     reports = []
     with tempfile.TemporaryDirectory(prefix="usvc-device-") as tmp:
         for scene in args.scene or ["mini"]:
             work = (args.work or Path(tmp)) / scene
             work.mkdir(parents=True, exist_ok=True)
-            result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations)
+            result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations,
+                                   args.first, not args.no_repeat)
             reports.append(write_report(f"device_pipeline_{device.replace(':', '')}_{scene}", result))
             print(json.dumps({k: result[k] for k in ("scene", "device_name", "total_seconds", "same_map_twice",
                                                       "metrics")}, indent=1))

@@ -9,7 +9,7 @@ untimed ones, split as the relocalizer reports it (preprocess, network, pnp, ref
 the map's size on disk (head, landmarks) is recorded beside the SfM model's. Writes
 results/benchmarks/query_speed_<scene>.json with the command line and the machine context.
 Run (nothing else heavy running, threads as the product uses them):
-python benchmarks/query_speed.py --scene-dir data/bird --size 640x480
+python benchmarks/query_speed.py --scene-dir data/bird --size 640x480   [--device cuda]
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ def main() -> None:
     variants = [*REFINE, "features-colmap"]  # the last: refinement by features with COLMAP's SIFT on the query
     ap.add_argument("--refine", nargs="+", choices=variants, default=variants)
     ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="the relocalizer's device: auto | cpu | cuda | cuda:N")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     photos = _photos(args.scene_dir, size)
@@ -69,7 +70,7 @@ def main() -> None:
     for refine in args.refine:
         options = RelocalizeOptions(refine="features", features_extractor="colmap") if refine == "features-colmap" \
             else RelocalizeOptions(refine=refine)
-        reloc = Relocalizer(paths.map_file, options=options)
+        reloc = Relocalizer(paths.map_file, options=options, device=args.device)
         for rgb, intr in photos[: args.warmup]:
             reloc.localize(rgb, intr)
         secs = [reloc.localize(rgb, intr).seconds for rgb, intr in photos]
@@ -79,9 +80,10 @@ def main() -> None:
     sizes = {"map_head_mb": _megabytes(paths.map_file), "landmarks_mb": _megabytes(paths.landmarks),
              "sfm_model_mb": _megabytes(paths.sfm / "model")}
     print({k: round(v, 2) for k, v in sizes.items()})
-    name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "")
+    name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "") + ("" if args.device == "cpu" else f"_{reloc.device}")
     write_report(f"query_speed_{name}", {"scene": scene_of(args.scene_dir), "queries": len(photos),
                                          "image_size": [w, h], "threads": torch.get_num_threads(),
+                                         "device": str(reloc.device),
                                          "seconds_median": rows, **sizes})
 
 

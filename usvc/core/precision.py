@@ -99,11 +99,13 @@ def resolve_precision(setting: str, device: str = "cpu") -> str:
 
 
 @contextlib.contextmanager
-def autocast(precision: str, device: str = "cpu") -> Iterator[None]:
-    """Run the enclosed layers at `precision` ('bf16' or 'fp32', as `resolve_precision` returns)."""
+def autocast(precision: str, device: str = "cpu", cache: bool = True) -> Iterator[None]:
+    """Run the enclosed layers at `precision` ('bf16' or 'fp32', as `resolve_precision` returns).
+    `cache=False` for a region captured as a CUDA graph (autocast's weight cache must not be)."""
     import torch
 
     if precision not in ("bf16", "fp32"):
         raise ValueError(f"resolve precision={precision!r} first (bf16 or fp32)")
-    with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+    with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=precision == "bf16",
+                        cache_enabled=cache):
         yield

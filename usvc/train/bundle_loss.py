@@ -12,65 +12,63 @@ ACE's robust form (L1 pixel error e, loss tau * tanh(e / tau) with the reproject
 threshold schedule): early in training most predictions are hundreds of pixels off in the other
 views, and a squared error lets those few pairs dominate the gradient. Both are averaged over
 pairs, so lambda_B = 1 weighs one pair like one pixel sample of L_pi.
+
+Layout: groups padded to one width, (G, m) observations with a mask, so that the n^2 pairs of
+every group are one broadcast product (no per-pair gathers of cameras, a fixed shape every step:
+the trainer can replay a step as one CUDA graph) and each observation's gradient is a sum in a
+fixed order (a reduction over b, not scattered adds of repeated rows).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from usvc.train.options import BUNDLE_FORMS
-from usvc.train.reprojection_loss import project_samples, reprojection_loss
+from usvc.train.reprojection_loss import lower_median
 
 FORMS = BUNDLE_FORMS
 
 
-def group_pairs(group_sizes) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) index pairs over observations laid out group after group: all n_g^2 pairs per group
-    (host arrays: the trainer draws them a block of steps at a time, with the groups)."""
-    sizes = np.asarray(group_sizes, dtype=np.int64)
-    starts = np.cumsum(sizes) - sizes
-    counts = sizes * sizes
-    group = np.repeat(np.arange(len(sizes)), counts)
-    local = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-    n = sizes[group]
-    return starts[group] + local // n, starts[group] + local % n
-
-
-def _squared(pred: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor,
-             K_inv: torch.Tensor, depth_min: float, depth_max: float, invalid_depth: float) -> tuple[torch.Tensor, dict]:
-    z, proj, invalid = project_samples(pred.float(), pixels, R, t, K, K_inv, depth_min, invalid_depth)
-    err2 = ((proj - pixels) ** 2).sum(dim=1)
-    valid = (z >= depth_min) & (z <= depth_max)
-    loss = torch.where(valid, err2, invalid).mean()
-    with torch.no_grad():
-        err = err2.sqrt()
-        stats = {"valid_fraction": valid.float().mean(),
-                 "reproj_median": torch.where(valid, err, torch.full_like(err, float("nan"))).nanmedian()}
-    return loss, stats
-
-
-def bundle_loss(pred: torch.Tensor, group_sizes: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor,
-                t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float, *, form: str,
-                depth_min: float, depth_max: float, invalid_depth: float,
-                max_reproj: float,
-                pairs: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Mean pair loss over the groups. Observation rows (pred, pixels, and their view's R, t, K)
-    are laid out group after group, `group_sizes` long each. `form` and the bounds come from
-    `TrainOptions` through the trainer (as in `reprojection_loss`); none has a default here.
-    `pairs`: `group_pairs(group_sizes)` already on pred's device (the trainer draws them on the
-    host a block at a time, so that the step reads nothing back from the device)."""
+def bundle_loss(pred: torch.Tensor, mask: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor,
+                       t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float | torch.Tensor, *,
+                       form: str, depth_min: float, depth_max: float, invalid_depth: float,
+                       max_reproj: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Mean pair loss over the groups, G groups padded to m observations: pred (G, m, 3), mask
+    (G, m) (True where an observation is), pixels (G, m, 2), each observation's view R (G, m, 3, 3),
+    t (G, m, 3), K and K_inv (G, m, 3, 3). Pair (a, b) of group g projects pred[g, a] into view
+    b's camera; pairs with a masked end are left out of the sum and of the count. Statistics
+    (detached 0-dim tensors, no host read): `valid_fraction` of the pairs and the lower median
+    pixel error of the valid ones (`reproj_median`). `form` and the bounds come from
+    `TrainOptions` through the trainer; none has a default here."""
     if form not in FORMS:
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
-    if pairs is None:
-        a, b = (torch.from_numpy(x).to(pred.device) for x in group_pairs(group_sizes.cpu().numpy()))
-    else:
-        a, b = pairs
-    # index_select, not pred[a]: every observation appears in many pairs, and on CPU the gradient
-    # of advanced indexing adds repeated rows in thread-timing order (different bits every run);
-    # index_select's gradient adds them in index order.
-    pred_a = torch.index_select(pred, 0, a)
-    if form == "squared":
-        return _squared(pred_a, pixels[b], R[b], t[b], K[b], K_inv[b], depth_min, depth_max, invalid_depth)
-    return reprojection_loss(pred_a, pixels[b], R[b], t[b], K[b], K_inv[b], threshold, depth_min=depth_min,
-                             depth_max=depth_max, max_reproj=max_reproj, invalid_depth=invalid_depth)
+    with torch.autocast(device_type=pred.device.type, enabled=False):
+        X = pred.float()
+        # p[g, a, b] = R_b X_a + t_b: every observation's point in every view of its group.
+        p = torch.einsum("gbij,gaj->gabi", R, X) + t[:, None]
+        z = p[..., 2]
+        h = torch.einsum("gbij,gabj->gabi", K, p)  # h[..., 2] == z: K's last row is [0, 0, 1]
+        proj = h[..., :2] / h[..., 2:3].clamp(min=depth_min)
+        uv = pixels[:, None]
+        ray = torch.einsum("gbij,gbj->gbi", K_inv, torch.cat([pixels, torch.ones_like(pixels[..., :1])], dim=-1))
+        invalid = (p - invalid_depth * ray[:, None]).abs().sum(dim=-1)
+        pair = mask[:, :, None] & mask[:, None, :]
+        count = pair.sum().clamp(min=1).float()
+        in_front = (z >= depth_min) & (z <= depth_max)
+        if form == "squared":
+            err2 = ((proj - uv) ** 2).sum(dim=-1)
+            valid = in_front
+            per_pair = torch.where(valid, err2, invalid)
+            with torch.no_grad():
+                err = err2.sqrt()
+        else:
+            err = (proj - uv).abs().sum(dim=-1)
+            valid = in_front & (err <= max_reproj)
+            tau = threshold.float() if isinstance(threshold, torch.Tensor) else threshold
+            per_pair = torch.where(valid, tau * torch.tanh(err / tau), invalid)
+        loss = torch.where(pair, per_pair, torch.zeros_like(per_pair)).sum() / count
+        with torch.no_grad():
+            stats = {"valid_fraction": (pair & valid).sum().float() / count,
+                     "reproj_median": lower_median(err.detach(), pair & valid)}
+    return loss, stats
+

@@ -34,18 +34,22 @@ class GroupSampler:
         return len(self.starts)
 
     def next(self) -> tuple[np.ndarray, np.ndarray]:
-        """(observation rows, group sizes): rows laid out group after group."""
+        """(rows, mask), both (groups_per_batch, obs_per_group): each line one group's observation
+        rows, padded with its first row where the group has fewer (mask False there), so that
+        every step has the same shape."""
         if self.cursor + self.groups_per_batch > len(self.order):
             self.order, self.cursor, self.epochs = self.rng.permutation(len(self.starts)), 0, self.epochs + 1
         groups = self.order[self.cursor:self.cursor + self.groups_per_batch]
         self.cursor += self.groups_per_batch
-        rows, sizes = [], []
-        for g in groups:
+        rows = np.empty((len(groups), self.obs_per_group), dtype=np.int64)
+        mask = np.zeros((len(groups), self.obs_per_group), dtype=bool)
+        for line, g in enumerate(groups):
             start, count = self.starts[g], self.counts[g]
             if count > self.obs_per_group:
                 pick = np.sort(self.rng.choice(count, self.obs_per_group, replace=False))
             else:
                 pick = np.arange(count)
-            rows.append(start + pick)
-            sizes.append(len(pick))
-        return np.concatenate(rows), np.asarray(sizes, dtype=np.int64)
+            rows[line] = start + pick[0]
+            rows[line, :len(pick)] = start + pick
+            mask[line, :len(pick)] = True
+        return rows, mask

@@ -40,6 +40,7 @@ class TrainOptions:
     precision: str = "auto"  # the head's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
     report_every: int = 100  # steps between reads of the statistics from the device (progress, divergence check); none in between
     validate_every: int = 500  # held-out reprojection every this many steps, when the buffer has held-out views (buffer.holdout_every > 0); 0 = never
+    cuda_graph: bool = True  # on CUDA with adamw: each step (forward, losses, backward, optimizer) replayed as one captured graph; false = step by step
 
     def problems(self) -> list[str]:
         out = one_of(self, "optimizer", OPTIMIZERS) + one_of(self, "schedule", SCHEDULES)

@@ -34,6 +34,20 @@ def project_samples(X: torch.Tensor, uv: torch.Tensor, R: torch.Tensor, t: torch
     return z, proj, invalid
 
 
+def lower_median(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """The lower median of `values` where `valid` (NaN where none is), as `nanmedian` of the valid
+    values gives it, without reading anything back from the device: CUDA's `nanmedian` reads the
+    NaN count to the host, which would make every training step wait for the GPU (and cannot be
+    captured in a CUDA graph). NaNs sort last, so the median is the sorted values' entry
+    (count - 1) // 2, taken with a device-side index."""
+    valid = valid & ~values.isnan()
+    if not values.is_cuda:  # the host has no device to wait for, and its selection beats a sort
+        return torch.where(valid, values, torch.full_like(values, float("nan"))).nanmedian()
+    ordered = torch.where(valid, values, torch.full_like(values, float("nan"))).flatten().sort().values
+    at = ((valid.sum() - 1).clamp(min=0) // 2).reshape(1)
+    return ordered.gather(0, at).reshape(())
+
+
 def reprojection_loss(
     pred_xyz_world: torch.Tensor,
     pixels: torch.Tensor,
@@ -91,10 +105,9 @@ def reprojection_loss(
         with torch.no_grad():
             # Masked reductions rather than boolean indexing: no host synchronisation on GPU.
             count = valid.sum().to(dtype)
-            nan = torch.full_like(err, float("nan"))
             stats = {
                 "valid_fraction": count / n if n else count * float("nan"),
                 "reproj_mean": torch.where(valid, err, torch.zeros_like(err)).sum() / count,
-                "reproj_median": torch.where(valid, err, nan).nanmedian(),
+                "reproj_median": lower_median(err, valid),
             }
     return loss, stats

@@ -25,7 +25,7 @@ from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief
-from usvc.train.bundle_loss import bundle_loss, group_pairs
+from usvc.train.bundle_loss import bundle_loss
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
 from usvc.train.reprojection_loss import project_samples, reprojection_loss
@@ -66,19 +66,42 @@ def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: floa
             "within_10px": float((err <= 10.0).mean())}
 
 
-def _optimizer(opts: TrainOptions, params, device: str) -> tuple[torch.optim.Optimizer, Any]:
-    if opts.optimizer == "adamw":
-        # One fused kernel per step on CUDA; the CPU keeps torch's default (the same bits as ever).
-        fused = {"fused": True} if device.startswith("cuda") else {}
-        optim: torch.optim.Optimizer = torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay, **fused)
-    else:
-        optim = AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
+def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer:
+    if opts.optimizer == "adabelief":
+        return AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    if device.startswith("cuda"):
+        # The learning rate lives on the device and is refilled every step, the step count too
+        # (capturable): a step reads nothing from the host, so it can be replayed as a CUDA graph.
+        lr = torch.full((), opts.lr, dtype=torch.float32, device=device)  # filled there: no copy
+        return torch.optim.AdamW(params, lr=lr, weight_decay=opts.weight_decay, foreach=True, capturable=True)
+    return torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+
+
+def schedule_values(opts: TrainOptions) -> list[float]:
+    """The learning rate of every step, as torch's scheduler sets it (one_cycle: OneCycleLR with a
+    fixed beta1, as ACE trains; constant: lr), worked out once on a stand-in parameter so that the
+    loop only sets one number a step."""
+    stand_in = torch.nn.Parameter(torch.zeros(1))
+    optim = _optimizer(opts, [stand_in], "cpu")
     if opts.schedule == "one_cycle":
-        sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
-                                                    pct_start=opts.warmup_fraction)
+        sched: Any = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
+                                                         pct_start=opts.warmup_fraction, cycle_momentum=False)
     else:
         sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
-    return optim, sched
+    lrs = []
+    for _ in range(opts.iterations):
+        lrs.append(float(optim.param_groups[0]["lr"]))
+        optim.step()  # no gradient: nothing changes but the scheduler's order check
+        sched.step()
+    return lrs
+
+
+def _set_lr(optim: torch.optim.Optimizer, lr: float) -> None:
+    for group in optim.param_groups:
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
 
 
 def read_back(values: torch.Tensor) -> np.ndarray:
@@ -90,17 +113,12 @@ def read_back(values: torch.Tensor) -> np.ndarray:
 @dataclass
 class _Block:
     """A block of training steps drawn on the host and sent to the device in one copy each: the
-    pixel samples' buffer rows, and for the bundle loss the keypoint observation rows, the group
-    sizes and the (a, b) pairs, with each step's offsets into them (host integers)."""
+    pixel samples' buffer rows and, for the bundle loss, each step's keypoint groups padded to one
+    width (observation rows and their mask)."""
 
     idx: torch.Tensor  # (steps, batch) buffer rows
-    rows: torch.Tensor | None = None  # keypoint observation rows, step after step
-    sizes: torch.Tensor | None = None  # group sizes, step after step
-    pair_a: torch.Tensor | None = None  # pairs within each step's rows, step after step
-    pair_b: torch.Tensor | None = None
-    row_at: list[int] = field(default_factory=list)  # step k's rows are rows[row_at[k]:row_at[k + 1]]
-    size_at: list[int] = field(default_factory=list)
-    pair_at: list[int] = field(default_factory=list)
+    rows: torch.Tensor | None = None  # (steps, groups, width) keypoint observation rows
+    mask: torch.Tensor | None = None  # (steps, groups, width): True where an observation is
 
 
 def _to_device(array: np.ndarray | torch.Tensor, device: str) -> torch.Tensor:
@@ -130,22 +148,38 @@ class _BatchDraw:
         block = _Block(idx=_to_device(torch.stack(idx), device))
         if self.sampler is None:
             return block
-        rows, sizes, pa, pb = [], [], [], []
-        for _ in range(steps):
-            r, s = self.sampler.next()
-            a, b = group_pairs(s)
-            rows.append(r)
-            sizes.append(s)
-            pa.append(a)
-            pb.append(b)
-        block.row_at = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).tolist()
-        block.size_at = np.concatenate([[0], np.cumsum([len(s) for s in sizes])]).tolist()
-        block.pair_at = np.concatenate([[0], np.cumsum([len(a) for a in pa])]).tolist()
-        block.rows = _to_device(np.concatenate(rows).astype(np.int64), device)
-        block.sizes = _to_device(np.concatenate(sizes).astype(np.int64), device)
-        block.pair_a = _to_device(np.concatenate(pa).astype(np.int64), device)
-        block.pair_b = _to_device(np.concatenate(pb).astype(np.int64), device)
+        rows, mask = zip(*(self.sampler.next() for _ in range(steps)))
+        block.rows = _to_device(np.stack(rows), device)
+        block.mask = _to_device(np.stack(mask), device)
         return block
+
+
+class _StepGraph:
+    """One training step captured as a CUDA graph and replayed: its inputs are copied into the
+    graph's own tensors first. Captured after a few steps run normally on a side stream (the
+    optimizer's state exists by then), as torch's whole-network capture does."""
+
+    WARMUP = 3
+
+    def __init__(self, step, example: tuple[torch.Tensor, ...]) -> None:
+        self.inputs = tuple(torch.empty_like(x) for x in example)
+        for mine, x in zip(self.inputs, example):
+            mine.copy_(x)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.out = step(*self.inputs)
+
+    def replay(self, *inputs: torch.Tensor) -> torch.Tensor:
+        for mine, x in zip(self.inputs, inputs):
+            mine.copy_(x)
+        self.graph.replay()
+        return self.out
+
+
+def capture(step, example: tuple[torch.Tensor, ...]) -> _StepGraph:
+    """The one place the loop waits for the device outside `read_back`: capturing a graph
+    synchronises once."""
+    return _StepGraph(step, example)
 
 
 @contextlib.contextmanager
@@ -223,50 +257,80 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
     invalid_depth = opts.invalid_depth_rel * median_depth
 
-    optim, sched = _optimizer(opts, head.parameters(), device)
+    optim = _optimizer(opts, head.parameters(), device)
+    lrs = schedule_values(opts)
     draw = _BatchDraw(n, opts.batch_size, gen, sampler)
     steps = torch.full((opts.iterations, 6), float("nan"), device=device)  # per-step statistics, on the device
     history = np.full((opts.iterations, 6), np.nan)
     validation: list[dict[str, float]] = []
     nan = torch.full((), float("nan"), device=device)
+    tau_now = torch.zeros((), device=device)  # the threshold, refilled every step (a graph reads it there)
+    batch = opts.batch_size
+
+    def step(idx: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Forward, losses, backward and the optimizer's step on one batch (gradients already
+        cleared); the step's statistics as one device tensor."""
+        v = view[idx]
+        x = feats[idx].float()
+        if sampler is not None:
+            x = torch.cat([x, kp_feats[rows.flatten()].float()])
+        with autocast(precision, device, cache=False):
+            pred = head.forward_flat(x)
+        pix_loss, stats = reprojection_loss(
+            pred[:batch], pixels[idx], Rv[v], tv[v], Kv[v], Kinv[v], tau_now, depth_min=depth_min,
+            depth_max=depth_max, max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
+        loss = opts.reproj_weight * pix_loss
+        b_loss = b_px = nan
+        if sampler is not None:
+            kv = kp_view[rows]
+            b_loss, b_stats = bundle_loss(
+                pred[batch:].reshape(*rows.shape, 3), mask, kp_pixels[rows], Rv[kv], tv[kv], Kv[kv], Kinv[kv], tau_now,
+                form=opts.bundle_loss, depth_min=depth_min, depth_max=depth_max, invalid_depth=invalid_depth,
+                max_reproj=opts.max_reproj_px)
+            loss = loss + opts.bundle_weight * b_loss
+            b_px = b_stats["reproj_median"]
+        loss.backward()
+        optim.step()
+        return torch.stack([loss.detach(), pix_loss.detach(), stats["valid_fraction"], stats["reproj_median"],
+                            b_loss.detach(), b_px]).float()
+
+    graphed = device.startswith("cuda") and opts.cuda_graph and opts.optimizer == "adamw"
+    graph: _StepGraph | None = None
+    graph_note = f"not captured (fewer than {_StepGraph.WARMUP + 1} steps)" if graphed else "off"
+    side = torch.cuda.Stream(device) if graphed else None
     start = time.perf_counter()
     bar = tqdm(total=opts.iterations, desc="train", unit="it")
     with _deterministic(device):
         for lo in range(0, opts.iterations, opts.report_every):
             hi = min(lo + opts.report_every, opts.iterations)
             block = draw.block(hi - lo, device)
+            no_groups = block.idx[:, :0]
             for it in range(lo, hi):
                 k = it - lo
-                idx = block.idx[k]
-                v = view[idx]
-                x = feats[idx].float()
-                if sampler is not None:
-                    rows = block.rows[block.row_at[k]:block.row_at[k + 1]]
-                    x = torch.cat([x, kp_feats[rows].float()])
-                with autocast(precision, device):
-                    pred = head.forward_flat(x)
+                inputs = (block.idx[k], *((block.rows[k], block.mask[k]) if sampler is not None
+                                         else (no_groups[k], no_groups[k])))
                 tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
-                pix_loss, stats = reprojection_loss(
-                    pred[:len(idx)], pixels[idx], Rv[v], tv[v], Kv[v], Kinv[v], tau, depth_min=depth_min,
-                    depth_max=depth_max, max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
-                loss = opts.reproj_weight * pix_loss
-                b_loss = b_px = nan
-                if sampler is not None:
-                    kv = kp_view[rows]
-                    pairs = (block.pair_a[block.pair_at[k]:block.pair_at[k + 1]],
-                             block.pair_b[block.pair_at[k]:block.pair_at[k + 1]])
-                    b_loss, b_stats = bundle_loss(
-                        pred[len(idx):], block.sizes[block.size_at[k]:block.size_at[k + 1]], kp_pixels[rows],
-                        Rv[kv], tv[kv], Kv[kv], Kinv[kv], tau, form=opts.bundle_loss, depth_min=depth_min,
-                        depth_max=depth_max, invalid_depth=invalid_depth, max_reproj=opts.max_reproj_px, pairs=pairs)
-                    loss = loss + opts.bundle_weight * b_loss
-                    b_px = b_stats["reproj_median"]
-                optim.zero_grad(set_to_none=True)
-                loss.backward()
-                optim.step()
-                sched.step()
-                steps[it] = torch.stack([loss.detach(), pix_loss.detach(), stats["valid_fraction"],
-                                         stats["reproj_median"], b_loss.detach(), b_px]).float()
+                tau_now.fill_(tau)
+                _set_lr(optim, lrs[it])
+                if graph is None and graphed and it >= _StepGraph.WARMUP:
+                    optim.zero_grad(set_to_none=True)
+                    try:
+                        graph = capture(step, inputs)
+                        graph_note = "captured"
+                    except RuntimeError as exc:  # a torch or driver without what capture needs: step by step
+                        log.warning("training step by step: the CUDA graph capture failed (%s)", exc)
+                        graphed, graph_note = False, f"capture failed: {exc}"
+                if graph is not None:
+                    steps[it] = graph.replay(*inputs)
+                elif graphed:  # the steps before the capture, on a side stream as torch's capture recipe asks
+                    side.wait_stream(torch.cuda.current_stream(device))
+                    with torch.cuda.stream(side):
+                        optim.zero_grad(set_to_none=True)
+                        steps[it] = step(*inputs)
+                    torch.cuda.current_stream(device).wait_stream(side)
+                else:
+                    optim.zero_grad(set_to_none=True)
+                    steps[it] = step(*inputs)
                 if heldout is not None and opts.validate_every and ((it + 1) % opts.validate_every == 0
                                                                     or it + 1 == opts.iterations):
                     fit = heldout_fit(head, heldout, precision, depth_min, device)
@@ -298,6 +362,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
         "median_depth": float(median_depth),
         "loss_curve": [float(history[i:i + 100, _PIX].mean()) for i in range(0, len(history), 100)],
         "bundle_weight": opts.bundle_weight,
+        "cuda_graph": graph_note if device.startswith("cuda") else None,
     }
     if validation:
         summary["heldout_cells"] = len(heldout.features)
