@@ -6,7 +6,8 @@ For each scene it runs `python -m stages.<stage> scene=<scene> device=<device>` 
 folder (`--work`, default a temporary one) so that the checkout's artifacts stay as they are.
 Then it trains the map a second time with the same seed and says whether the two maps are the
 same bits, and it times the head's training steps alone at larger batches (data already on the
-device). It writes `results/benchmarks/device_pipeline_<device>_<scene>.json`:
+device). It writes `results/benchmarks/device_pipeline_<device>_<scene>.json` (after every stage, with
+`complete: false` until the end, so that a run cut off still says what it measured):
 
 - per stage: wall seconds of its process (imports included), the seconds and device the stage
   recorded itself (`<stage>.timing.json`: device, device_name);
@@ -56,6 +57,10 @@ def _md5(path: Path) -> str:
     return hashlib.md5(path.read_bytes()).hexdigest()
 
 
+def report_name(device: str, scene: str) -> str:
+    return f"device_pipeline_{device.replace(':', '')}_{scene}"
+
+
 def head_throughput(data: Path, scene: str, device: str, overrides: list[str], batch_sizes: list[int],
                     iterations: int) -> list[dict]:
     """Samples per second of the training steps alone (buffer already read), per batch size."""
@@ -97,8 +102,14 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
         row = {"stage": stage, "wall_seconds": round(seconds, 2), "stage_seconds": record.get("seconds"),
                "device": record.get("device"), "device_name": record.get("device_name"),
                "peak_memory_mb": record.get("peak_memory_mb")}
+        if stage == "train":  # the steps alone, and whether they ran as one CUDA graph
+            row |= {k: record.get(k) for k in ("train_seconds", "samples_per_second")}
+            row["cuda_graph"] = read_json(ScenePaths(data, results, scene).metrics("train")).get("cuda_graph")
         rows.append(row)
         print(f"{scene:>8} {stage:>10}: {seconds:7.1f} s  {row['device'] or ''}", flush=True)
+        # So far, in case the run is cut off: the finished report replaces it.
+        write_report(report_name(device, scene), {"scene": scene, "device": device, "complete": False,
+                                                  "stages": rows})
     total = time.perf_counter() - t0
     paths = ScenePaths(data, results, scene)
     train = {**read_json(paths.metrics("train")), **timing_record(results / scene, "train")}
@@ -108,7 +119,7 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
     digest = _md5(map_file)
     repeat_seconds = run_stage("train", scene, [*common, *overrides], env)["seconds"] if repeat else None
     result = {
-        "scene": scene, "device": device, "overrides": overrides,
+        "scene": scene, "device": device, "complete": True, "overrides": overrides,
         "device_name": next((r["device_name"] for r in rows if r["stage"] == "train"), None),
         "total_seconds": round(total, 1), "stages": rows,
         "train": {k: train.get(k) for k in ("iterations", "samples_seen", "precision", "train_seconds",
@@ -156,7 +167,7 @@ def main() -> None:
             work.mkdir(parents=True, exist_ok=True)
             result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations,
                                    args.first, not args.no_repeat)
-            reports.append(write_report(f"device_pipeline_{device.replace(':', '')}_{scene}", result))
+            reports.append(write_report(report_name(device, scene), result))
             print(json.dumps({k: result[k] for k in ("scene", "device_name", "total_seconds", "same_map_twice",
                                                       "metrics")}, indent=1))
     print("reports:", *map(str, reports))
