@@ -176,25 +176,43 @@ class _no_sync_warnings_outside_reads:
 
 @pytest.mark.parametrize("schedule,optimizer", [("one_cycle", "adamw"), ("constant", "adamw"),
                                                 ("one_cycle", "adabelief")])
-def test_each_step_gets_the_rate_torchs_scheduler_gives_it(schedule, optimizer):
-    """The loop sets every step's learning rate from a list worked out up front (so that a CUDA
-    graph can read it on the device): the rates a scheduler sets on a real run, beta1 fixed (ACE's
-    one-cycle schedule does not cycle it)."""
+def test_each_step_gets_the_rate_and_beta1_torchs_scheduler_gives_it(schedule, optimizer):
+    """The loop sets every step's learning rate and beta1 from lists worked out up front (so that a
+    CUDA graph can read them on the device): what the scheduler sets on a real run."""
     opts = _opts(schedule=schedule, optimizer=optimizer, iterations=50, warmup_fraction=0.3)
-    lrs = trainer.schedule_values(opts)
+    lrs, beta1s = trainer.schedule_values(opts)
     param = torch.nn.Parameter(torch.ones(3))
     optim = trainer._optimizer(opts, [param], "cpu")
-    sched = (torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=50, pct_start=0.3,
-                                                 cycle_momentum=False)
+    sched = (torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=50, pct_start=0.3)
              if schedule == "one_cycle" else torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0))
     for it in range(50):
         group = optim.param_groups[0]
-        assert (group["lr"], group["betas"][0]) == (lrs[it], 0.9), it
+        assert (group["lr"], group["betas"][0]) == (lrs[it], beta1s[it]), it
         param.grad = torch.full((3,), 0.1)
         optim.step()
         sched.step()
-    if schedule == "one_cycle":  # rises to lr over the first 30 %, then anneals far below it
+    if schedule == "one_cycle":  # the rate peaks at lr after 30 %; beta1 goes 0.95 -> 0.85 -> 0.95
         peak = max(range(50), key=lrs.__getitem__)
         assert lrs[peak] == pytest.approx(opts.lr) and 13 <= peak <= 16 and lrs[-1] < opts.lr / 100
+        assert beta1s[peak] == pytest.approx(0.85) and beta1s[0] == beta1s[-1] == pytest.approx(0.95)
     else:
-        assert set(lrs) == {opts.lr}
+        assert set(lrs) == {opts.lr} and set(beta1s) == {0.9}
+
+
+def test_training_with_the_graph_optimizer_is_training_with_torchs(monkeypatch):
+    """On CUDA the step uses GraphAdamW (rate and beta1 on the device); the same training on the
+    CPU with it ends where torch's AdamW ends (the same update, rounded in another order)."""
+    buf = _bundle_buffer()
+    opts = _opts(iterations=30, report_every=10)
+    _, torch_adamw = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
+    made = []
+
+    def graph_optimizer(opts, params, device):
+        made.append(trainer.GraphAdamW(params, lr=opts.lr, weight_decay=opts.weight_decay))
+        return made[-1]
+
+    monkeypatch.setattr(trainer, "_optimizer", graph_optimizer)
+    _, graph_adamw = train_head(buf, 3.0, opts, head_width=32, head_blocks=1)
+    assert made and float(made[-1].steps) == 30
+    assert graph_adamw["loss_curve"] == pytest.approx(torch_adamw["loss_curve"], rel=1e-3)
+    assert graph_adamw["final_loss"] == pytest.approx(torch_adamw["final_loss"], rel=1e-3)

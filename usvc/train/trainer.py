@@ -26,6 +26,7 @@ from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
 from usvc.train.adabelief import AdaBelief
 from usvc.train.bundle_loss import bundle_loss
+from usvc.train.graph_adamw import GraphAdamW
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
 from usvc.train.reprojection_loss import project_samples, reprojection_loss
@@ -66,42 +67,43 @@ def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: floa
             "within_10px": float((err <= 10.0).mean())}
 
 
-def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer:
+def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer | GraphAdamW:
     if opts.optimizer == "adabelief":
         return AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
     if device.startswith("cuda"):
-        # The learning rate lives on the device and is refilled every step, the step count too
-        # (capturable): a step reads nothing from the host, so it can be replayed as a CUDA graph.
-        lr = torch.full((), opts.lr, dtype=torch.float32, device=device)  # filled there: no copy
-        return torch.optim.AdamW(params, lr=lr, weight_decay=opts.weight_decay, foreach=True, capturable=True)
+        # The rate and beta1 (the one-cycle schedule moves both) live on the device and are refilled
+        # every step: a step reads nothing from the host, so it can be replayed as a CUDA graph.
+        return GraphAdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
     return torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
 
 
-def schedule_values(opts: TrainOptions) -> list[float]:
-    """The learning rate of every step, as torch's scheduler sets it (one_cycle: OneCycleLR with a
-    fixed beta1, as ACE trains; constant: lr), worked out once on a stand-in parameter so that the
-    loop only sets one number a step."""
+def schedule_values(opts: TrainOptions) -> tuple[list[float], list[float]]:
+    """The learning rate and beta1 of every step, as torch's scheduler sets them (one_cycle:
+    OneCycleLR, which also cycles beta1 between 0.95 and 0.85 against the rate; constant: lr and
+    0.9), worked out once on a stand-in parameter so that the loop only sets two numbers a step."""
     stand_in = torch.nn.Parameter(torch.zeros(1))
-    optim = _optimizer(opts, [stand_in], "cpu")
+    optim = torch.optim.AdamW([stand_in], lr=opts.lr, betas=(0.9, 0.999))  # both optimizers' starting betas
     if opts.schedule == "one_cycle":
         sched: Any = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
-                                                         pct_start=opts.warmup_fraction, cycle_momentum=False)
+                                                         pct_start=opts.warmup_fraction)
     else:
         sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
-    lrs = []
+    lrs, beta1s = [], []
+    group = optim.param_groups[0]
     for _ in range(opts.iterations):
-        lrs.append(float(optim.param_groups[0]["lr"]))
+        lrs.append(float(group["lr"]))
+        beta1s.append(float(group["betas"][0]))
         optim.step()  # no gradient: nothing changes but the scheduler's order check
         sched.step()
-    return lrs
+    return lrs, beta1s
 
 
-def _set_lr(optim: torch.optim.Optimizer, lr: float) -> None:
+def _set_schedule(optim: torch.optim.Optimizer | GraphAdamW, lr: float, beta1: float) -> None:
+    if isinstance(optim, GraphAdamW):
+        optim.set_schedule(lr, beta1)
+        return
     for group in optim.param_groups:
-        if isinstance(group["lr"], torch.Tensor):
-            group["lr"].fill_(lr)
-        else:
-            group["lr"] = lr
+        group["lr"], group["betas"] = lr, (beta1, *group["betas"][1:])
 
 
 def read_back(values: torch.Tensor) -> np.ndarray:
@@ -258,7 +260,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     invalid_depth = opts.invalid_depth_rel * median_depth
 
     optim = _optimizer(opts, head.parameters(), device)
-    lrs = schedule_values(opts)
+    lrs, beta1s = schedule_values(opts)
     draw = _BatchDraw(n, opts.batch_size, gen, sampler)
     steps = torch.full((opts.iterations, 6), float("nan"), device=device)  # per-step statistics, on the device
     history = np.full((opts.iterations, 6), np.nan)
@@ -311,7 +313,7 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
                                          else (no_groups[k], no_groups[k])))
                 tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
                 tau_now.fill_(tau)
-                _set_lr(optim, lrs[it])
+                _set_schedule(optim, lrs[it], beta1s[it])
                 if graph is None and graphed and it >= _StepGraph.WARMUP:
                     optim.zero_grad(set_to_none=True)
                     try:
