@@ -24,15 +24,15 @@ from __future__ import annotations
 import torch
 
 from usvc.train.options import BUNDLE_FORMS
-from usvc.train.reprojection_loss import lower_median
+from usvc.train.reprojection_loss import lower_median, project_samples
 
 FORMS = BUNDLE_FORMS
 
 
 def bundle_loss(pred: torch.Tensor, mask: torch.Tensor, pixels: torch.Tensor, R: torch.Tensor,
-                       t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float | torch.Tensor, *,
-                       form: str, depth_min: float, depth_max: float, invalid_depth: float,
-                       max_reproj: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                t: torch.Tensor, K: torch.Tensor, K_inv: torch.Tensor, threshold: float | torch.Tensor, *,
+                form: str, depth_min: float, depth_max: float, invalid_depth: float,
+                max_reproj: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean pair loss over the groups, G groups padded to m observations: pred (G, m, 3), mask
     (G, m) (True where an observation is), pixels (G, m, 2), each observation's view R (G, m, 3, 3),
     t (G, m, 3), K and K_inv (G, m, 3, 3). Pair (a, b) of group g projects pred[g, a] into view
@@ -43,15 +43,10 @@ def bundle_loss(pred: torch.Tensor, mask: torch.Tensor, pixels: torch.Tensor, R:
     if form not in FORMS:
         raise ValueError(f"bundle loss form must be one of {FORMS}, got {form!r}")
     with torch.autocast(device_type=pred.device.type, enabled=False):
-        X = pred.float()
-        # p[g, a, b] = R_b X_a + t_b: every observation's point in every view of its group.
-        p = torch.einsum("gbij,gaj->gabi", R, X) + t[:, None]
-        z = p[..., 2]
-        h = torch.einsum("gbij,gabj->gabi", K, p)  # h[..., 2] == z: K's last row is [0, 0, 1]
-        proj = h[..., :2] / h[..., 2:3].clamp(min=depth_min)
+        # Pair (g, a, b): observation a's point in view b, broadcast over (group, a, b).
         uv = pixels[:, None]
-        ray = torch.einsum("gbij,gbj->gbi", K_inv, torch.cat([pixels, torch.ones_like(pixels[..., :1])], dim=-1))
-        invalid = (p - invalid_depth * ray[:, None]).abs().sum(dim=-1)
+        z, proj, invalid = project_samples(pred.float()[:, :, None], uv, R[:, None], t[:, None], K[:, None],
+                                           K_inv[:, None], depth_min, invalid_depth)
         pair = mask[:, :, None] & mask[:, None, :]
         count = pair.sum().clamp(min=1).float()
         in_front = (z >= depth_min) & (z <= depth_max)

@@ -24,13 +24,15 @@ def project_samples(X: torch.Tensor, uv: torch.Tensor, R: torch.Tensor, t: torch
                     invalid_depth: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per sample: camera depth z, the projection (depth clamped to depth_min), and the invalid-
     prediction term |p - invalid_depth * K^-1 [u, v, 1]|_1 that pulls bad points onto the ray.
-    Shared by every loss form, so they all treat points behind the camera the same way."""
-    p = torch.einsum("nij,nj->ni", R, X) + t
-    z = p[:, 2]
-    h = torch.einsum("nij,nj->ni", K, p)  # h[:, 2] == z: K's last row is [0, 0, 1]
-    proj = h[:, :2] / h[:, 2:3].clamp(min=depth_min)
-    uv1 = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=1)
-    invalid = (p - invalid_depth * torch.einsum("nij,nj->ni", K_inv, uv1)).abs().sum(dim=1)
+    Shared by every loss form, so they all treat points behind the camera the same way. Leading
+    dimensions broadcast: X (..., 3), uv (..., 2), R, K, K_inv (..., 3, 3), t (..., 3) (the bundle
+    loss projects every observation of a group into every view of it this way)."""
+    p = torch.einsum("...ij,...j->...i", R, X) + t
+    z = p[..., 2]
+    h = torch.einsum("...ij,...j->...i", K, p)  # h[..., 2] == z: K's last row is [0, 0, 1]
+    proj = h[..., :2] / h[..., 2:3].clamp(min=depth_min)
+    uv1 = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)
+    invalid = (p - invalid_depth * torch.einsum("...ij,...j->...i", K_inv, uv1)).abs().sum(dim=-1)
     return z, proj, invalid
 
 
