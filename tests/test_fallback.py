@@ -25,6 +25,7 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
+from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import relocalizer as relocalizer_module
 from usvc.relocalize.pnp import project_points
 from usvc.relocalize.query_features import QueryFeatures
@@ -92,7 +93,7 @@ def _map(tmp_path: Path, landmarks: Landmarks, monkeypatch: pytest.MonkeyPatch, 
     coords = coordinate_map(learned, learned, noise=0.0) if learned is not None else \
         np.random.default_rng(5).normal(0.0, 2.0, (300, 3)) + [0.0, 0.0, 3.0]
     monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: coords.reshape(15, 20, 3))
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
     path = make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32), META)
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     return path

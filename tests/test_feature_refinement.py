@@ -24,7 +24,7 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import landmarks_disagree, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
-from usvc.relocalize import relocalizer as relocalizer_module
+from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
     global_matches,
@@ -227,7 +227,7 @@ def test_relocalizer_refines_by_features_and_reports_the_path(tmp_path: Path, sy
     path = make_map(tmp_path / "map" / "map.pt", landmarks.xyz[:10].astype(np.float32),
                     {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / "landmarks" / LANDMARKS_H5, landmarks)  # the pipeline's layout
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
     reloc = Relocalizer(path, tmp_path / "map" / "encoder.pt")
     assert reloc.landmarks_path == tmp_path / "landmarks" / LANDMARKS_H5
     est = reloc.localize(photo(), CAM)
@@ -247,7 +247,7 @@ def test_features_from_another_place_fall_back_to_the_dense_answer(tmp_path: Pat
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: other)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: other)
     est = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt").localize(photo(), CAM)
     assert est.refine_path == "dense" and est.feature_inliers == 0
     assert est.to_json()["refinement"]["learned_pose_kept"] is True
@@ -295,7 +295,7 @@ def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthet
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
     reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
     for factor in (2.0, 0.5):
@@ -315,13 +315,13 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
     est = reloc.localize(photo(), None)
     assert est.success and est.refine_path == "guided" and est.focal_estimated
     assert abs(est.camera.params[0] / CAM.focal[0] - 1.0) < 0.25  # the features' focal, not the 1.2 x side prior
     cx = CAM.principal_point[0]
     wide = QueryFeatures(np.c_[cx + 1.5 * (feats.uv[:, 0] - cx), feats.uv[:, 1]], feats.descriptor)
-    monkeypatch.setattr(relocalizer_module, "extract_sift", lambda gray, n, ex: wide)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: wide)
     est = reloc.localize(photo(), None)
     assert not est.success and "looks stretched" in est.rejected and np.isnan(est.R).all()
 

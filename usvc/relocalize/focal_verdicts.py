@@ -5,6 +5,8 @@ SIFT + PnP's verified matches), in that order, and why a focal length is refused
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose
@@ -14,7 +16,7 @@ from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.camera_checks import FOCAL_OBSERVABLE_FRACTION
 from usvc.relocalize.feature_refinement import FeatureResult
 from usvc.relocalize.options import RelocalizeOptions
-from usvc.relocalize.pnp import PnPResult, support_at
+from usvc.relocalize.pnp import PnPResult, explains
 from usvc.relocalize.query_evidence import QueryEvidence
 
 FOCAL_UNOBSERVABLE = "unobservable"
@@ -57,14 +59,16 @@ class FocalVerdicts:
     landmarks: Landmarks | None
 
     def _focal_disagreement(self, pixels: np.ndarray, coords: np.ndarray, camera: Camera, threshold: float,
-                            tolerance: float | None = None, source: str = "") -> str:
+                            tolerance: float | None = None, source: str = "",
+                            map_focal: Callable[[], Camera | None] | None = None) -> str:
         """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
         imply another one (beyond `tolerance`, default focal_tolerance). A wrong focal length can
         still explain most cells with a wrong pose (a shallow view trades focal length for
-        distance), so confidence alone cannot catch it."""
+        distance), so confidence alone cannot catch it. `map_focal` gives that estimate when it
+        was started already (`usvc.relocalize.feature_job.Job`)."""
         tolerance = self.options.focal_tolerance if tolerance is None else tolerance
-        estimate = estimate_focal(pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
-                                  self.seed)
+        estimate = map_focal() if map_focal is not None else estimate_focal(
+            pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold, self.seed)
         if estimate is None:
             return ""  # no opinion: nothing to hold against the given focal length
         given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
@@ -75,7 +79,8 @@ class FocalVerdicts:
 
     def _focal_without_global_evidence(self, dense: PnPResult, feature: FeatureResult, evidence: QueryEvidence,
                                        pixels: np.ndarray, coords: np.ndarray, camera: Camera | None,
-                                       threshold: float, cells: int, source: str) -> str:
+                                       threshold: float, cells: int, source: str,
+                                       map_focal: Callable[[], Camera | None] | None = None) -> str:
         """Why the given focal length is wrong ("" when it is right, FOCAL_UNOBSERVABLE when nothing
         tells) when the matches to every landmark cannot tell, from the next evidence in order: the
         map's coordinates where they read this photo well (the learned pose agrees with the features' and min_confidence of the
@@ -91,14 +96,14 @@ class FocalVerdicts:
         wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
         if agree and dense.num_inliers >= self.options.min_confidence * cells:
             assert camera is not None
-            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
+            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source, map_focal)
         verdict = self._feature_focal_verdict(evidence, source, verified=True)
         feature.verified, feature.verified_seconds = evidence.verified_record(), evidence.verified_seconds()
         if verdict != FOCAL_UNOBSERVABLE:
             return verdict
         if agree:
             assert camera is not None
-            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source)
+            return self._focal_disagreement(pixels, coords, camera, threshold, wide, source, map_focal)
         return FOCAL_UNOBSERVABLE  # nothing tells: nothing contradicts the given focal length either
 
     def _unsupported_focal(self, camera: Camera, dense_inliers: int, cells: int, from_map: bool) -> str:
@@ -132,8 +137,8 @@ class FocalVerdicts:
             shallow = False
             for scale in (1.0 / (1.0 + tol), 1.0 + tol):  # can a focal length this far off explain the same inliers?
                 other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
-                if support_at(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px) \
-                        >= FOCAL_OBSERVABLE_FRACTION * inliers:
+                if explains(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px,
+                            FOCAL_OBSERVABLE_FRACTION * inliers):
                     shallow = True
                     break
             if shallow:

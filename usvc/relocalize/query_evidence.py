@@ -5,7 +5,7 @@ hypotheses and its focal-length checks (P4Pf) share them."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -19,22 +19,26 @@ from usvc.relocalize.verified_matching import VerifiedMatches, verified_matches
 class QueryEvidence:
     """`camera` is the query's at the feature image's size (an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix); `use_global` False (prior=none)
-    leaves the global matches out of `unguided`."""
+    leaves the global matches out of `unguided`; `global_pairs` gives those matches when they are
+    being found already (`usvc.relocalize.feature_job`)."""
 
     def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[np.ndarray] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
-                 use_global: bool = True) -> None:
+                 use_global: bool = True,
+                 global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
         self._global: tuple[np.ndarray, np.ndarray] | None = None
+        self._global_source = global_pairs
         self.focal_estimated = False  # whether P4Pf on these correspondences gave the photo's focal length
         self._verified: VerifiedMatches | None = None
 
     def global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """(landmark rows, keypoint rows) of the matches to every landmark."""
         if self._global is None:
-            self._global = global_matches(self.landmark_desc, self.feats, self.opts.ratio)
+            self._global = self._global_source() if self._global_source is not None \
+                else global_matches(self.landmark_desc, self.feats, self.opts.ratio)
         return self._global
 
     def verified(self) -> VerifiedMatches | None:

@@ -10,6 +10,7 @@ so benchmark numbers and real use cannot drift apart.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 import time
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from usvc.model.head import Regressor
 from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
+from usvc.relocalize.feature_job import Job, QueryFeatureSet, feature_job, global_match_job
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, refine_by_features
 from usvc.relocalize.focal_verdicts import (
     FOCAL_UNCHECKED,
@@ -39,7 +41,7 @@ from usvc.relocalize.focal_verdicts import (
     FocalVerdicts,
 )
 from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp
-from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.camera_checks import (
     FOCAL_SPREAD,
     intrinsics_warnings,
@@ -240,6 +242,10 @@ class Relocalizer(FocalVerdicts):
         if given is not None:
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
         full_gray, full_camera = gray, camera  # undistorted, at the photo's size: what features see
+        job = None  # the photo's features, found on a second thread while the network runs
+        if self.landmarks is not None:
+            job = feature_job(full_gray, self.landmarks.image_short_side, self.options.features_max_keypoints,
+                              self.options.features_extractor)
         gray, resize = self.working_image(gray)
         if resize != 1.0 and camera is not None:
             camera = camera.scaled(gray.shape[1], gray.shape[0])
@@ -282,6 +288,18 @@ class Relocalizer(FocalVerdicts):
         else:  # no learned pose (prior=none, or no focal length from the map): features may still find one
             result = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
         t3 = time.perf_counter()
+        found_set, global_pairs = None, None
+        if job is not None:  # the features, and (on the worker, while the guided passes run) their
+            found_set = job.result()  # matches to every landmark where a verdict or a fallback needs them
+            if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
+                global_pairs = global_match_job(self._landmark_desc, found_set.feats,
+                                                self.options.features_ratio).result
+        map_focal = None  # the map's own estimate of the focal length (P4Pf on its coordinates), for its verdicts
+        if camera is not None and intrinsics is not None and result.success and self.options.focal_tolerance > 0 \
+                and self.map_judges_focal:
+            confident = result.num_inliers >= self.options.min_confidence * hc * wc  # a verdict then likely needs it
+            map_focal = Job(estimate_focal, pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
+                            self.seed, background=None if confident else False).result
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.
@@ -300,8 +318,9 @@ class Relocalizer(FocalVerdicts):
             if full_camera is None:  # COLMAP's prior for a photo without calibration
                 full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
                 given = full_camera
-            feature, feature_rejected, full_camera, feature_evidence = self._features(full_gray, full_camera, result,
-                                                                    intrinsics is not None, intrinsics_source)
+            assert found_set is not None
+            feature, feature_rejected, full_camera, feature_evidence = self._features(
+                found_set, global_pairs, full_camera, result, intrinsics is not None, intrinsics_source)
             if intrinsics is None and feature.success and not feature_rejected and not feature_evidence.focal_estimated \
                     and not (camera is not None and result.num_inliers >= self.options.min_confidence * hc * wc):
                 feature_rejected = self._unsupported_focal(full_camera, result.num_inliers, hc * wc, camera is not None)
@@ -309,7 +328,8 @@ class Relocalizer(FocalVerdicts):
                 given = full_camera  # the focal length the features estimated with the pose
             if feature_rejected == FOCAL_UNOBSERVABLE:
                 feature_rejected = self._focal_without_global_evidence(
-                    result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source)
+                    result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source,
+                    map_focal)
                 if feature_rejected == FOCAL_UNOBSERVABLE:  # nothing tells: the answer stands, with a doubt
                     feature_rejected = ""
                     warnings.append(FOCAL_UNCHECKED if self.map_judges_focal else FOCAL_UNCHECKED_MAP)
@@ -325,7 +345,8 @@ class Relocalizer(FocalVerdicts):
             if intrinsics is not None and self.options.focal_tolerance > 0 and not self.map_judges_focal:
                 warnings.append(MAP_DOES_NOT_JUDGE)
             elif intrinsics is not None and self.options.focal_tolerance > 0:
-                rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source)
+                rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source,
+                                                    map_focal=map_focal)
             elif intrinsics is None:  # a square-pixel focal estimated: stretched?
                 rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
             if not rejected and inliers < self.options.min_confidence * hc * wc:
@@ -363,10 +384,12 @@ class Relocalizer(FocalVerdicts):
             why += f", and the photo's features gave none ({feature.why or 'no match to the landmarks'})"
         return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
 
-    def _features(self, gray01: np.ndarray, camera: Camera, dense, check_focal: bool,
+    def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
+                  camera: Camera, dense, check_focal: bool,
                   source: str = "") -> tuple[FeatureResult, str, Camera, QueryEvidence]:
-        """Refinement by features on the undistorted photo (resized to the mapping images' short
-        side when larger); returns the result, why it is not trusted ("") and the camera it used,
+        """Refinement by features on the undistorted photo's features (`found_set`: found on the
+        photo resized to the mapping images' short side when larger; `global_pairs` gives their
+        matches to every landmark when they are being found already); returns the result, why it is not trusted ("") and the camera it used,
         at the photo's size.
 
         Hypotheses in order of cost: guided passes from the learned pose; when they find no pose
@@ -377,15 +400,12 @@ class Relocalizer(FocalVerdicts):
         verified ones) where they give one, and they also tell whether the photo was stretched."""
         assert self.landmarks is not None
         full = camera
-        short = min(gray01.shape)
-        if short > self.landmarks.image_short_side:
-            gray01, _ = resize_to_short_side(gray01, self.landmarks.image_short_side)
-            camera = camera.scaled(gray01.shape[1], gray01.shape[0])
-        feats = extract_sift(np.clip(np.rint(gray01 * 255.0), 0, 255).astype(np.uint8),
-                             self.options.features_max_keypoints, self.options.features_extractor)
-        opts = feature_options(self.options, min(gray01.shape))
+        feats = found_set.feats
+        if found_set.resized:
+            camera = camera.scaled(found_set.gray.shape[1], found_set.gray.shape[0])
+        opts = feature_options(self.options, min(found_set.gray.shape))
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
-                                 self.seed, use_global=self.prior)
+                                 self.seed, use_global=self.prior, global_pairs=global_pairs)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         if not check_focal:
             for uv, xyz in evidence.unguided():

@@ -1,0 +1,132 @@
+"""The query's features found on a second thread while the network runs: the same keypoints,
+matches and answers as found in place; and `explains`, the focal-length observability test's
+refinement, which stops at the first pose that is a witness."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from test_feature_refinement import scene
+from test_refinement import CAM, R_TRUE, T_TRUE, backproject, make_map, photo, synthetic_query  # noqa: F401
+
+from usvc.core.artifact_names import LANDMARKS_H5
+from usvc.core.scene import Camera
+from usvc.landmarks.landmarks_file import write_landmarks
+from usvc.relocalize import feature_job as feature_job_module
+from usvc.relocalize import pnp as pnp_module
+from usvc.relocalize.feature_job import feature_job, find_features, global_match_job
+from usvc.relocalize.feature_refinement import global_matches
+from usvc.relocalize.pnp import explains
+from usvc.relocalize.relocalizer import Relocalizer
+
+
+def textured(seed: int = 0, shape: tuple[int, int] = (360, 480)) -> np.ndarray:
+    """A grey image in [0, 1] of blurred blobs at several scales: something for SIFT to find."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros(shape, np.float32)
+    for cells in (6, 12, 24):
+        small = rng.random((cells * shape[0] // shape[1] + 1, cells)).astype(np.float32)
+        img += cv2.resize(small, shape[::-1], interpolation=cv2.INTER_CUBIC)
+    img = cv2.GaussianBlur(img, (0, 0), 1.2)
+    return (img - img.min()) / (img.max() - img.min())
+
+
+def test_features_found_beside_the_network_are_those_found_in_place():
+    gray = textured()
+    inline = find_features(gray, 240, 2000, "opencv")
+    assert inline.resized and min(inline.gray.shape) == 240 and len(inline.feats) > 100
+    desc = inline.feats.descriptor[::3]  # landmarks that some keypoints match
+    pairs = global_matches(desc, inline.feats, 0.8)
+    assert len(pairs[0]) >= 0.9 * len(desc)  # their own keypoints
+    for background in (False, True):
+        job = feature_job(gray, 240, 2000, "opencv", background=background)
+        assert job.background is background
+        got = job.result()
+        assert got.resized and np.array_equal(got.gray, inline.gray)
+        assert np.array_equal(got.feats.uv, inline.feats.uv)
+        assert np.array_equal(got.feats.descriptor, inline.feats.descriptor)
+        assert job.result() is got  # computed once
+        matched = global_match_job(desc, got.feats, 0.8, background=background).result()
+        assert all(np.array_equal(a, b) for a, b in zip(matched, pairs))
+    small = find_features(gray, 480, 2000, "opencv")
+    assert not small.resized and small.gray is gray
+
+
+def test_a_job_runs_on_the_worker_thread_only_in_the_background(monkeypatch):
+    where = []
+
+    def record(*args):
+        where.append(threading.current_thread().name)
+        return find_features(*args)
+
+    monkeypatch.setattr(feature_job_module, "find_features", record)
+    gray = textured(1, (120, 160))
+    feature_job(gray, 240, 500, "opencv", background=True).result()
+    lazy = feature_job(gray, 240, 500, "opencv", background=False)
+    assert len(where) == 1 and where[0].startswith("usvc-features")
+    lazy.result()
+    assert where[1] == threading.current_thread().name
+    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 1)
+    assert not feature_job(gray, 240, 500, "opencv").background  # one thread: in place
+    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 2)
+    assert feature_job(gray, 240, 500, "opencv").background
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_relocalizer_answers_the_same_with_its_features_found_beside_the_network(
+        tmp_path: Path, synthetic_query, monkeypatch, threads: int):
+    landmarks, feats = scene()
+    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
+             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
+    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
+    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+    (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
+    answers = {}
+    for background in (False, True):
+        monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda b=background: 2 if b else 1)
+        answers[background] = [reloc.localize(photo(), intr) for intr in (CAM, None, (2 * fx, 2 * fy, cx, cy))]
+    for a, b in zip(answers[False], answers[True]):
+        assert a.success == b.success and a.rejected == b.rejected and a.refine_path == b.refine_path
+        assert np.array_equal(a.R, b.R, equal_nan=True) and np.array_equal(a.t, b.t, equal_nan=True)
+    assert [a.success for a in answers[True]] == [True, True, False]
+
+
+def _shallow_view(n: int = 300, depth_spread: float = 0.0):
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([10, 10], [CAM.width - 10, CAM.height - 10], (n, 2))
+    xyz = backproject(uv, R_TRUE, T_TRUE)
+    if depth_spread:  # push the points along their rays: a deep scene
+        center = -R_TRUE.T @ T_TRUE
+        xyz = center + (xyz - center) * rng.uniform(1.0 - depth_spread, 1.0 + depth_spread, (n, 1))
+    return uv, xyz
+
+
+def test_explains_is_a_witness_test_that_stops_at_the_first_pose_reaching_the_need(monkeypatch):
+    calls = []
+    refine = pycolmap.refine_absolute_pose
+
+    def counted(*args):
+        calls.append(args[-1].max_num_iterations)
+        return refine(*args)
+
+    monkeypatch.setattr(pnp_module.pycolmap, "refine_absolute_pose", counted)
+    (fx, _), (cx, cy) = CAM.focal, CAM.principal_point
+    mask = np.ones(300, bool)
+    # the right camera explains every correspondence at once: the short refinement is the witness
+    uv, xyz = _shallow_view()
+    assert explains(CAM, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 0.8 * 300)
+    assert calls == [5]
+    # a deep scene: a focal length 1.5x off explains few of them, whatever the pose; every step ran
+    calls.clear()
+    uv, xyz = _shallow_view(depth_spread=0.6)
+    other = Camera("SIMPLE_PINHOLE", CAM.width, CAM.height, (1.5 * fx, cx, cy))
+    assert not explains(other, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 0.8 * 300)
+    assert calls == [5, 15, 80]
+    # a need nothing can meet is never met
+    assert not explains(CAM, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 301)
