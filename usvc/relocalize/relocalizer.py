@@ -407,6 +407,9 @@ class Relocalizer(FocalVerdicts):
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
+        verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
+        if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is
+            verdict = Job(self._feature_focal_verdict, evidence, source)  # found beside the guided passes
         if not check_focal:
             for uv, xyz in evidence.unguided():
                 fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
@@ -423,7 +426,8 @@ class Relocalizer(FocalVerdicts):
         found = self._hypotheses(feats, camera, prior, opts, evidence)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
             return found, "", full, evidence
-        return found, self._feature_focal_verdict(evidence, source), full, evidence
+        return found, verdict.result() if verdict is not None else self._feature_focal_verdict(evidence, source), \
+            full, evidence
 
     def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
                     evidence: QueryEvidence) -> FeatureResult:
