@@ -281,6 +281,11 @@ class Relocalizer(FocalVerdicts):
             seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
             return PoseEstimate(False, nan_R(), nan_t(), 0, hc * wc, seconds, focal_estimated=True,
                                 rejected=no_focal, warnings=warnings, pose_found=False)
+        map_focal = None  # the map's own estimate of the focal length (P4Pf on its coordinates) for its verdicts:
+        if camera is not None and self.prior and intrinsics is not None and self.options.focal_tolerance > 0 \
+                and self.map_judges_focal:  # on the worker, while the dense PnP and the guided passes run
+            map_focal = Job(estimate_focal, pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
+                            self.seed).result
         if camera is not None and self.prior:
             result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                                seed=self.seed, min_inliers=self.options.min_inliers,
@@ -294,12 +299,6 @@ class Relocalizer(FocalVerdicts):
             if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
                 global_pairs = global_match_job(self._landmark_desc, found_set.feats,
                                                 self.options.features_ratio).result
-        map_focal = None  # the map's own estimate of the focal length (P4Pf on its coordinates), for its verdicts
-        if camera is not None and intrinsics is not None and result.success and self.options.focal_tolerance > 0 \
-                and self.map_judges_focal:
-            confident = result.num_inliers >= self.options.min_confidence * hc * wc  # a verdict then likely needs it
-            map_focal = Job(estimate_focal, pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
-                            self.seed, background=None if confident else False).result
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.
