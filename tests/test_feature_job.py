@@ -4,6 +4,8 @@ refinement, which stops at the first pose that is a witness."""
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
 from pathlib import Path
 
@@ -130,3 +132,19 @@ def test_explains_is_a_witness_test_that_stops_at_the_first_pose_reaching_the_ne
     assert calls == [5, 15, 80]
     # a need nothing can meet is never met
     assert not explains(CAM, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 301)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_runs_jobs_on_its_own_worker():
+    """A child forked after the parent used the worker has none of its threads: its jobs must not
+    wait for a worker that does not exist there."""
+    gray = textured(2, (120, 160))
+    parent = feature_job(gray, 240, 300, "opencv", background=True).result()
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as pool:
+        n = pool.apply_async(_child_features, (gray,)).get(timeout=60)
+    assert n == len(parent.feats)
+
+
+def _child_features(gray: np.ndarray) -> int:
+    return len(feature_job(gray, 240, 300, "opencv", background=True).result().feats)

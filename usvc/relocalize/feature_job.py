@@ -12,6 +12,7 @@ when asked for.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -27,15 +28,19 @@ from usvc.relocalize.query_features import QueryFeatures, extract_sift
 
 T = TypeVar("T")
 _POOL: ThreadPoolExecutor | None = None
+_POOL_PID = 0  # the process that made _POOL: a forked child has none of its threads, so makes its own
 _POOL_LOCK = threading.Lock()
 
 
 def _pool() -> ThreadPoolExecutor:
     """One worker for the whole process: one job at a time, in the order they were started."""
-    global _POOL
+    global _POOL, _POOL_LOCK, _POOL_PID
+    if _POOL_PID != os.getpid():  # a fork copies the lock in whatever state it was, not its holder
+        _POOL_LOCK = threading.Lock()
     with _POOL_LOCK:
-        if _POOL is None:
+        if _POOL is None or _POOL_PID != os.getpid():
             _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="usvc-features")
+            _POOL_PID = os.getpid()
         return _POOL
 
 
