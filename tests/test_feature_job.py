@@ -13,18 +13,15 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-from test_feature_refinement import scene
+from test_feature_refinement import synthetic_relocalizer
 from test_refinement import CAM, R_TRUE, T_TRUE, backproject, make_map, photo, synthetic_query  # noqa: F401
 
-from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.scene import Camera
-from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import pnp as pnp_module
 from usvc.relocalize.feature_job import feature_job, find_features, global_match_job
 from usvc.relocalize.feature_refinement import global_matches
 from usvc.relocalize.pnp import explains
-from usvc.relocalize.relocalizer import Relocalizer
 
 
 def textured(seed: int = 0, shape: tuple[int, int] = (360, 480)) -> np.ndarray:
@@ -79,15 +76,9 @@ def test_a_job_runs_on_the_worker_thread_only_in_the_background(monkeypatch):
     assert feature_job(gray, 240, 500, "opencv").background
 
 
-@pytest.mark.parametrize("threads", [1, 2])
 def test_the_relocalizer_answers_the_same_with_its_features_found_beside_the_network(
-        tmp_path: Path, synthetic_query, monkeypatch, threads: int):
-    landmarks, feats = scene()
-    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
-             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
-    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+        tmp_path: Path, synthetic_query, monkeypatch):
+    reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
     answers = {}
     for background in (False, True):

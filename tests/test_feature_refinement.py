@@ -290,13 +290,19 @@ def test_sift_extractors_give_unit_descriptors_in_colmap_pixels(extractor: str):
     assert np.all((feats.uv >= 0) & (feats.uv <= [160, 120]))
 
 
-def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthetic_query, monkeypatch):
+def synthetic_relocalizer(tmp_path: Path, monkeypatch) -> tuple[Relocalizer, QueryFeatures]:
+    """A relocalizer on a map of `scene()`'s landmarks, whose query photos have `scene()`'s features
+    (with `synthetic_query`'s coordinates): the relocalizer and those features."""
     landmarks, feats = scene()
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
-    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
+    return Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt"), feats
+
+
+def test_a_wrong_focal_length_is_refused_by_the_features(tmp_path: Path, synthetic_query, monkeypatch):
+    reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
     for factor in (2.0, 0.5):
         est = reloc.localize(photo(), (fx * factor, fy * factor, cx, cy))
@@ -310,12 +316,7 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
     """No intrinsics: the photo's matches to every landmark give the focal length (P4Pf), and a
     photo stretched to another aspect ratio (keypoints 1.5x wider about the centre) is refused
     by what those matches say, not answered with a pose tens of degrees off."""
-    landmarks, feats = scene()
-    make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
-             {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
-    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    reloc = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt")
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
+    reloc, feats = synthetic_relocalizer(tmp_path, monkeypatch)
     est = reloc.localize(photo(), None)
     assert est.success and est.refine_path == "guided" and est.focal_estimated
     assert abs(est.camera.params[0] / CAM.focal[0] - 1.0) < 0.25  # the features' focal, not the 1.2 x side prior
