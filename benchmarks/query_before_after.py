@@ -1,0 +1,124 @@
+"""Time the default query step of the code at a git revision against this tree's, on the same photos, back to back, and check that both give the same answers.
+
+`--before REV` is checked out into a temporary git worktree. Each run is a child process with one
+tree first on its path: it localizes every query photo of the scene with the scene's own map
+(given intrinsics, `relocalize.refine=features`, OpenCV's SIFT unless --extractor colmap),
+--passes times after 2 warm-up photos, and reports the seconds and the answers (pose, refusal).
+Per scene and size the runs alternate before/after --rounds times, so that a machine whose speed
+drifts affects both alike. Writes results/benchmarks/query_before_after.json: per scene and size,
+each run's median seconds per query, the median over the runs, and how many answers are the same,
+bit for bit. Run (nothing else heavy running):
+python benchmarks/query_before_after.py --before HEAD~3 --scene-dir data/mini data/office data/bird --size own 640x480
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, out: Path) -> None:
+    """One run, in a child process whose `usvc` is `tree`'s."""
+    sys.path.insert(0, str(tree))
+    import usvc  # noqa: F401  (first: it sets OpenMP's wait policy before torch loads)
+    import cv2
+    import numpy as np
+    import torch
+
+    from usvc.core.images import read_image_bgr
+    from usvc.core.scene_file import read_scene_h5
+    from usvc.pipeline.paths import ScenePaths
+    from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
+
+    if not Path(usvc.__file__).resolve().is_relative_to(tree.resolve()):
+        raise SystemExit(f"usvc came from {usvc.__file__}, not from {tree}")
+    paths = ScenePaths.of_scene_dir(scene_dir)
+    photos = []
+    for f in read_scene_h5(paths.scene_file).split("test"):
+        rgb = cv2.cvtColor(read_image_bgr(f.image_path), cv2.COLOR_BGR2RGB)
+        (fx, fy), (cx, cy) = f.camera.focal, f.camera.principal_point
+        if size != "own":
+            w, h = (int(v) for v in size.split("x"))
+            w, h = (w, h) if rgb.shape[1] >= rgb.shape[0] else (h, w)
+            sx, sy = w / rgb.shape[1], h / rgb.shape[0]
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+            fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
+        photos.append((rgb, (fx, fy, cx, cy)))
+    reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(refine="features", features_extractor=extractor),
+                        device="cpu")
+    for rgb, intr in photos[:2]:
+        reloc.localize(rgb, intr)
+    seconds, answers = [], []
+    for p in range(passes):
+        for rgb, intr in photos:
+            est = reloc.localize(rgb, intr)
+            seconds.append(est.seconds["total"])
+            if p == 0:
+                answers.append({"R": est.R.tolist(), "t": est.t.tolist(), "rejected": est.rejected})
+    out.write_text(json.dumps({"threads": torch.get_num_threads(), "queries": len(photos),
+                               "median_ms": 1000 * float(np.median(seconds)), "answers": answers}))
+
+
+def _run(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, tmp: Path) -> dict:
+    out = tmp / "run.json"
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(tree), str(scene_dir.resolve()), size,
+           str(passes), extractor, str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"a run in {tree} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(out.read_text())
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        tree, scene_dir, size, passes, extractor, out = sys.argv[2:8]
+        _child(Path(tree), Path(scene_dir), size, int(passes), extractor, Path(out))
+        return
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--before", required=True, help="git revision of the code to compare with this tree's")
+    ap.add_argument("--scene-dir", type=Path, nargs="+", required=True)
+    ap.add_argument("--size", nargs="+", default=["own"], help="'own' (the photos as prepared) and/or WxH")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--passes", type=int, default=2)
+    ap.add_argument("--extractor", choices=["opencv", "colmap"], default="opencv")
+    args = ap.parse_args()
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from _report import scene_of, write_report
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        before = tmp / "before"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(before), args.before],
+                       check=True)
+        try:
+            for scene_dir in args.scene_dir:
+                for size in args.size:
+                    runs: dict[str, list[dict]] = {"before": [], "after": []}
+                    for _ in range(args.rounds):
+                        for which, tree in (("before", before), ("after", ROOT)):
+                            runs[which].append(_run(tree, scene_dir, size, args.passes, args.extractor, tmp))
+                    ms = {k: [r["median_ms"] for r in v] for k, v in runs.items()}
+                    same = sum(a == b for a, b in zip(runs["before"][0]["answers"], runs["after"][0]["answers"]))
+                    row = {"scene": scene_of(scene_dir), "size": size, "queries": runs["after"][0]["queries"],
+                           "threads": runs["after"][0]["threads"], "before_ms": ms["before"], "after_ms": ms["after"],
+                           "before_median_ms": statistics.median(ms["before"]),
+                           "after_median_ms": statistics.median(ms["after"]), "answers_same": same}
+                    rows.append(row)
+                    print(f"{row['scene']:8s} {size:8s} before {row['before_median_ms']:.0f} ms  after "
+                          f"{row['after_median_ms']:.0f} ms  same answers {same} of {row['queries']}")
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(before)], check=False)
+    rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", args.before], capture_output=True, text=True)
+    write_report("query_before_after", {"before": rev.stdout.strip(), "extractor": args.extractor, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
