@@ -28,29 +28,18 @@ def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, 
     """One run, in a child process whose `usvc` is `tree`'s."""
     sys.path.insert(0, str(tree))
     import usvc  # noqa: F401  (first: it sets OpenMP's wait policy before torch loads)
-    import cv2
     import numpy as np
     import torch
 
-    from usvc.core.images import read_image_bgr
-    from usvc.core.scene_file import read_scene_h5
     from usvc.pipeline.paths import ScenePaths
     from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
     if not Path(usvc.__file__).resolve().is_relative_to(tree.resolve()):
         raise SystemExit(f"usvc came from {usvc.__file__}, not from {tree}")
+    from _photos import query_photos
+
     paths = ScenePaths.of_scene_dir(scene_dir)
-    photos = []
-    for f in read_scene_h5(paths.scene_file).split("test"):
-        rgb = cv2.cvtColor(read_image_bgr(f.image_path), cv2.COLOR_BGR2RGB)
-        (fx, fy), (cx, cy) = f.camera.focal, f.camera.principal_point
-        if size != "own":
-            w, h = (int(v) for v in size.split("x"))
-            w, h = (w, h) if rgb.shape[1] >= rgb.shape[0] else (h, w)
-            sx, sy = w / rgb.shape[1], h / rgb.shape[0]
-            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
-        photos.append((rgb, (fx, fy, cx, cy)))
+    photos = query_photos(scene_dir, None if size == "own" else tuple(int(v) for v in size.split("x")))
     reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(refine="features", features_extractor=extractor),
                         device="cpu")
     for rgb, intr in photos[:2]:

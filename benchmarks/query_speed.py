@@ -3,8 +3,8 @@
 For a scene folder after its landmarks and train stages (prepared/, map/, landmarks/), every
 query photo is localized with refine = none, keypoints, features (the default) and features with
 OpenCV's SIFT, at the
-photo's own size and, with --size WxH, resized to that size (intrinsics scaled with it; a
-portrait photo gets the size turned). Each figure is the median over the queries after --warmup
+photo's own size and, with --size WxH, cropped about the centre to that aspect ratio and resized
+to it (square pixels kept, intrinsics moved and scaled with it; a portrait photo gets the size turned). Each figure is the median over the queries after --warmup
 untimed ones, split as the relocalizer reports it (preprocess, network, pnp, refine, total);
 the map's size on disk (head, landmarks) is recorded beside the SfM model's. Writes
 results/benchmarks/query_speed_<scene>.json with the command line and the machine context.
@@ -22,14 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import usvc  # noqa: E402,F401  (first: it sets OpenMP's wait policy before torch loads)
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from _photos import query_photos  # noqa: E402
 from _report import scene_of, write_report  # noqa: E402
 
-from usvc.core.images import read_image_bgr  # noqa: E402
-from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
 from usvc.relocalize.options import REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
@@ -38,20 +36,6 @@ from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: 
 def _megabytes(path: Path) -> float:
     files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
     return sum(p.stat().st_size for p in files) / 2**20
-
-
-def _photos(scene_dir: Path, size: tuple[int, int] | None) -> list[tuple[np.ndarray, tuple]]:
-    out = []
-    for f in read_scene_h5(ScenePaths.of_scene_dir(scene_dir).scene_file).split("test"):
-        rgb = cv2.cvtColor(read_image_bgr(f.image_path), cv2.COLOR_BGR2RGB)
-        (fx, fy), (cx, cy) = f.camera.focal, f.camera.principal_point
-        if size is not None:
-            w, h = size if rgb.shape[1] >= rgb.shape[0] else size[::-1]
-            sx, sy = w / rgb.shape[1], h / rgb.shape[0]
-            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
-        out.append((rgb, (fx, fy, cx, cy)))
-    return out
 
 
 def main() -> None:
@@ -64,7 +48,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="the relocalizer's device: auto | cpu | cuda | cuda:N")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
-    photos = _photos(args.scene_dir, size)
+    photos = query_photos(args.scene_dir, size)
     paths = ScenePaths.of_scene_dir(args.scene_dir)
     rows = {}
     for refine in args.refine:

@@ -40,3 +40,26 @@ def test_relocalization_speed_runs_every_configured_model(tmp_path):
     by_model = {r["model"]: r for r in rows}
     assert by_model["default"]["head_width"] == 512 and by_model["small"]["head_width"] == 256
     assert all(r["encoder_ms"] > 0 and r["head_blocks"] >= 0 for r in rows)
+
+
+def test_query_photos_at_a_size_keep_square_pixels(monkeypatch):
+    """A photo is cropped about its centre to the size's aspect ratio, then resized: the pixels stay
+    square and a world point projects to the same place in the new photo as in the old one."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import numpy as np
+    from _photos import at_size
+
+    rgb = np.zeros((960, 544, 3), np.uint8)  # portrait, bird's size: 480x640 asks for a 3:4 crop
+    rgb[500, 300] = 255
+    intrinsics = (800.0, 800.0, 272.0, 480.0)
+    out, (fx, fy, cx, cy) = at_size(rgb, intrinsics, (640, 480))
+    assert out.shape[:2] == (640, 480)
+    assert fx == pytest.approx(fy, rel=1e-3)  # square pixels, not 1.32 as a straight resize gives
+    x, y, z = 0.05, 0.03, 1.0  # a point in the camera frame: its pixel before and after
+    before = np.array([800.0 * x / z + 272.0, 800.0 * y / z + 480.0])
+    after = np.array([fx * x / z + cx, fy * y / z + cy])
+    height = round(544 * 4 / 3)  # the 3:4 crop: 544 x 725, from row (960 - 725) // 2
+    expected = [before[0] * 480 / 544, (before[1] - (960 - height) // 2) * 640 / height]
+    assert after == pytest.approx(expected, abs=1e-6)
+    wide, (wfx, wfy, _, _) = at_size(np.zeros((360, 640, 3), np.uint8), (500.0, 500.0, 320.0, 180.0), (640, 480))
+    assert wide.shape[:2] == (480, 640) and wfx == pytest.approx(wfy, rel=1e-3)  # 16:9 cropped to 4:3
