@@ -237,6 +237,8 @@ def _localize(args: argparse.Namespace) -> int:
     --out-dir files are written only at the end, each atomically.
     """
     from usvc.relocalize.exports import Posed, check_names, export
+    from usvc.core.images import read_photo
+    from usvc.relocalize.photo_batch import check_workers, in_order, threads_per_query
     from usvc.relocalize.photo_prefetch import decoded_ahead
 
     camera = None
@@ -267,7 +269,12 @@ def _localize(args: argparse.Namespace) -> int:
     from usvc.relocalize.query_input import check_device
     from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 
-    threads.apply(args.threads)
+    try:
+        check_workers(args.workers)
+    except UsvcError:
+        raise UsvcError(f"--workers {args.workers}: must be a whole number >= 1") from None
+    # several photos at a time: the threads are shared among them (each query gets threads // workers)
+    threads.apply(threads_per_query(args.threads, args.workers))
     device = check_device(args.device)
     refine = "none" if args.no_refine else args.refine
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
@@ -283,27 +290,40 @@ def _localize(args: argparse.Namespace) -> int:
     relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=device, landmarks=args.landmarks)
     records: list[dict[str, Any]] = []
     posed: list[Posed] = []
-    bar = tqdm(list(zip(photos, cameras)), desc="localize", unit="photo", file=sys.stderr,
+    bar = tqdm(total=len(photos), desc="localize", unit="photo", file=sys.stderr,
                disable=len(photos) < 2 or not sys.stderr.isatty())
     errors = 0
-    decoded = decoded_ahead([None if isinstance(c, _UnreadablePhoto) else p for (_, p), c in zip(photos, cameras)])
-    for ((name, path), found), photo in zip(bar, decoded):
-        try:  # one unreadable photo is that photo's failure, not the end of the others'
+    readable = [None if isinstance(c, _UnreadablePhoto) else p for (_, p), c in zip(photos, cameras)]
+    # one photo at a time: the next one decoded meanwhile; several: each query decodes its own
+    decoded = decoded_ahead(readable) if args.workers == 1 else iter([None] * len(photos))
+
+    def answer(item: tuple) -> Any:
+        """The photo's estimate, or the UsvcError that is its failure (one unreadable photo is that
+        photo's failure, not the end of the others')."""
+        (name, path), found, photo = item
+        try:
             if isinstance(found, _UnreadablePhoto):
                 raise found
             cam, source, note = found
-            # read as the relocalizer reads a path (EXIF orientation applied, huge JPEGs reduced),
-            # while the previous photo was localized
-            estimate = relocalizer.localize(photo.result(), cam, **({"intrinsics_source": note} if note else {}))
+            # read as the relocalizer reads a path (EXIF orientation applied, huge JPEGs reduced)
+            image = photo.result() if photo is not None else read_photo(path)
+            return relocalizer.localize(image, cam, **({"intrinsics_source": note} if note else {}))
         except UsvcError as err:
+            return err
+
+    for ((name, path), found), estimate in zip(zip(photos, cameras),
+                                                in_order(answer, zip(photos, cameras, decoded), args.workers)):
+        bar.update()
+        if isinstance(estimate, UsvcError):
             errors += 1
-            log.error("%s: %s", name, err)
-            record = {"name": name, "success": False, "error": str(err)}
+            log.error("%s: %s", name, estimate)
+            record = {"name": name, "success": False, "error": str(estimate)}
             records.append(record)
             if not args.json_list:
                 tqdm.write(json.dumps(record), file=sys.stdout)
                 sys.stdout.flush()
             continue
+        cam, source, note = found
         record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
         if source == "exif" and record.get("rejected", "").startswith(note):
             record["rejected"] += "; --no-exif ignores EXIF focal lengths"
@@ -398,6 +418,10 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--precision", choices=PRECISIONS, default="auto",
                      help="the network's products: auto = bf16 where the device runs it natively and faster, "
                           "else fp32 (any map runs at either)")
+    loc.add_argument("--workers", type=int, default=1,
+                     help="photos localized at a time, each with --threads divided among them (default 1): "
+                          "for many photos on many cores, or with the network on a GPU; same answers as one "
+                          "at a time with that many threads")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")
     loc.add_argument("--out-dir", help="also write the results here (files replaced atomically at the end)")

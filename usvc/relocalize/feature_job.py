@@ -7,15 +7,17 @@ With more than one thread (`threads`, torch's count), each is computed on a work
 as its inputs exist, while the main thread runs the network, the PnP and the guided passes: the
 same functions on the same inputs, so the same keypoints, matches and estimates, in less wall time
 (OpenCV, BLAS, COLMAP and torch release the GIL). With one thread each is computed in place, only
-when asked for.
+when asked for, as it is on a thread that `inline_jobs` marks (one of several queries running at
+once, `usvc.relocalize.photo_batch`: they would all queue on the one worker).
 """
 
 from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -30,6 +32,18 @@ T = TypeVar("T")
 _POOL: ThreadPoolExecutor | None = None
 _POOL_PID = 0  # the process that made _POOL: a forked child has none of its threads, so makes its own
 _POOL_LOCK = threading.Lock()
+_THREAD = threading.local()  # .inline: this thread runs its jobs in place
+
+
+@contextmanager
+def inline_jobs() -> Iterator[None]:
+    """Jobs started on this thread meanwhile run in place, when asked for, whatever the thread count."""
+    before = getattr(_THREAD, "inline", False)
+    _THREAD.inline = True
+    try:
+        yield
+    finally:
+        _THREAD.inline = before
 
 
 def _pool() -> ThreadPoolExecutor:
@@ -65,14 +79,16 @@ def find_features(gray01: np.ndarray, short_side: int, max_keypoints: int, extra
 
 class Job:
     """`fn(*args)`: started at once on the worker thread when `background` (default: torch runs on
-    more than one thread), else run in place when `result` is first called. Work that may turn out
-    unneeded is started only in the background, where it costs no wall time."""
+    more than one thread and this thread is not in `inline_jobs`), else run in place when `result`
+    is first called. Work that may turn out unneeded is started only in the background, where it
+    costs no wall time."""
 
     def __init__(self, fn: Callable[..., T], *args: Any, background: bool | None = None) -> None:
         self._fn, self._args = fn, args
         self._done = False
         self._value: T | None = None
-        background = torch.get_num_threads() > 1 if background is None else background
+        if background is None:
+            background = torch.get_num_threads() > 1 and not getattr(_THREAD, "inline", False)
         self._future: Future | None = _pool().submit(fn, *args) if background else None
 
     @property

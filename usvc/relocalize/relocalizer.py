@@ -10,8 +10,8 @@ so benchmark numbers and real use cannot drift apart.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,7 @@ from usvc.relocalize.camera_checks import (
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.refinement import RefineOptions, refine_pose
+from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.query_evidence import QueryEvidence
 from usvc.relocalize.verified_matching import observation_descriptors
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
@@ -164,6 +165,21 @@ class Relocalizer(FocalVerdicts):
         if not self.prior and found.observations is None:
             raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
                             "(format version 1): rebuild them with the landmarks stage")
+
+    def localize_many(self, photos: Iterable[tuple[np.ndarray | str | Path | Photo, Intrinsics | None]],
+                      workers: int = 1) -> Iterator[PoseEstimate]:
+        """`localize` of each (image, intrinsics) pair, `workers` photos at a time, the answers in the
+        photos' order (`usvc.relocalize.photo_batch`). With several workers each query gets torch's
+        current thread count divided among them, and the answers are bit for bit those of the photos
+        localized one after the other with that many threads; for a folder on a machine with many
+        cores, or with the network on a GPU."""
+        workers = check_workers(workers)
+        if workers == 1:
+            for image, intrinsics in photos:
+                yield self.localize(image, intrinsics)
+            return
+        with query_threads(threads_per_query(torch.get_num_threads(), workers)):
+            yield from in_order(lambda pair: self.localize(*pair), photos, workers)
 
     def _localize_reduced(self, photo: Photo, intrinsics: Intrinsics | None, intrinsics_source: str) -> PoseEstimate:
         """A photo decoded reduced (over MAX_DECODE_PIXELS): its intrinsics, given for the photo's own
