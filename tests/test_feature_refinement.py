@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 from test_refinement import CAM, KEYPOINTS, R_TRUE, T_TRUE, backproject, errors, make_map, photo, synthetic_query  # noqa: F401
 
@@ -144,26 +145,33 @@ def _reference_global(lm_desc, feats, ratio):
     return best[cols], cols
 
 
-@pytest.mark.parametrize("dense_share", [0, 10**9])  # 0: always the pairs' own descriptors; 10**9: always one product
-def test_guided_and_global_matching_are_their_definitions(dense_share: int, monkeypatch):
-    from usvc.relocalize import feature_refinement
+CUDA_MARKS = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")]
+
+
+# dense_share 0: always the pairs' own descriptors; 10**9: always one product. device: the products
+# with numpy (None, the CPU default) or torch on that device (`usvc.relocalize.device_matching`)
+@pytest.mark.parametrize("dense_share,device", [(0, None), (10**9, None), (10**9, "cpu"),
+                                                      pytest.param(10**9, "cuda", marks=CUDA_MARKS)])
+def test_guided_and_global_matching_are_their_definitions(dense_share: int, device: str | None, monkeypatch):
+    from usvc.relocalize import device_matching, feature_refinement
     monkeypatch.setattr(feature_refinement, "_DENSE_PAIR_SHARE", dense_share)
     monkeypatch.setattr(feature_refinement, "_CHUNK", 96)  # several blocks of landmarks
+    monkeypatch.setattr(device_matching, "_CHUNK_ENTRIES", 96 * 700)  # the same on a device
     monkeypatch.setattr(feature_refinement, "_PAIRS", 500)  # several blocks of pairs
     landmarks, feats = scene(3)
     desc = unit_descriptors(landmarks.descriptor)
     R, t = prior(2.0, 0.02)  # off the true pose: landmarks project a few px from their keypoints
     idx, uv = visible_landmarks(landmarks, CAM, R, t, 45.0)
     for radius in (1.0, 4.0, 12.0, 40.0):
-        got, want = guided_matches(uv, desc[idx], feats, radius, 0.8), _reference_guided(uv, desc[idx], feats,
-                                                                                          radius, 0.8)
+        got, want = (guided_matches(uv, desc[idx], feats, radius, 0.8, device),
+                     _reference_guided(uv, desc[idx], feats, radius, 0.8))
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), radius
     # a second, noisier keypoint for 50 landmarks: its nearest landmark is the first one's, so only
     # the mutual check keeps it out
     rng = np.random.default_rng(4)
     twins = QueryFeatures(np.concatenate([feats.uv, feats.uv[:50] + 1.0]), np.concatenate(
         [feats.descriptor, unit_descriptors(feats.descriptor[:50] + 0.03 * rng.random((50, 128)))]).astype(np.float32))
-    got, want = global_matches(desc, twins, 0.8), _reference_global(desc, twins, 0.8)
+    got, want = global_matches(desc, twins, 0.8, device), _reference_global(desc, twins, 0.8)
     assert len(want[0]) > N_POINTS / 2 and len(np.unique(want[0])) == len(want[0])
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
 
@@ -367,3 +375,36 @@ def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_thr
     assert len(runs[0]) > 50
     for other in runs[1:]:
         assert np.array_equal(other.uv, runs[0].uv) and np.array_equal(other.descriptor, runs[0].descriptor)
+
+
+def test_descriptor_products_go_to_the_device_only_off_the_cpu():
+    """On the CPU the relocalizer keeps numpy's products (the measured answers); on a GPU, torch's there."""
+    from usvc.relocalize.relocalizer import matching_device
+
+    assert matching_device("cpu") is None
+    assert matching_device("cuda") == "cuda" and matching_device("cuda:1") == "cuda:1"
+
+
+def test_a_relocalizer_on_a_device_matches_there_and_answers_as_on_the_cpu(tmp_path: Path, synthetic_query,
+                                                                            monkeypatch):
+    """The device path of the relocalizer (forced here onto torch's CPU: the same code as on a GPU)
+    computes its products through `device_matching` and gives the CPU's answers."""
+    from usvc.relocalize import device_matching, feature_refinement
+    from usvc.relocalize import relocalizer as relocalizer_module
+
+    reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
+    (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
+    queries = [(fx, fy, cx, cy), (2 * fx, 2 * fy, cx, cy), None]
+    on_cpu = [reloc.localize(photo(), q) for q in queries]
+    calls = []
+    for name in ("masked_row_best_two", "best_two_and_column_max"):
+        real = getattr(device_matching, name)
+        monkeypatch.setattr(feature_refinement, name,
+                            lambda *a, _real=real, _name=name: calls.append(_name) or _real(*a))
+    monkeypatch.setattr(relocalizer_module, "matching_device", lambda device: "cpu")
+    on_device = [reloc.localize(photo(), q) for q in queries]
+    assert {"masked_row_best_two", "best_two_and_column_max"} <= set(calls)
+    for a, b in zip(on_cpu, on_device):
+        assert a.success == b.success and a.rejected == b.rejected and a.refine_path == b.refine_path
+        if a.success:
+            assert np.allclose(a.R, b.R, atol=1e-9) and np.allclose(a.t, b.t, atol=1e-9)

@@ -108,7 +108,7 @@ def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extract
     return Job(find_features, gray01, short_side, max_keypoints, extractor, background=background)
 
 
-def global_match_job(landmark_desc: np.ndarray, feats: QueryFeatures, ratio: float,
+def global_match_job(landmark_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
                      background: bool | None = None) -> Job:
-    """`global_matches` (the keypoints' matches to every landmark), as a `Job`."""
-    return Job(global_matches, landmark_desc, feats, ratio, background=background)
+    """`global_matches` (the keypoints' matches to every landmark, products on `device`), as a `Job`."""
+    return Job(global_matches, landmark_desc, feats, ratio, device, background=background)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.pnp import project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import VerifiedMatches
@@ -52,6 +53,7 @@ class FeatureMatchOptions:
     max_error_px: float  # LO-RANSAC inlier threshold, px of the feature image
     min_inliers: int  # fewer PnP inliers than this: the pass failed
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
+    device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
 
 
 @dataclass
@@ -128,7 +130,7 @@ def _ratio_test(s1: np.ndarray, s2: np.ndarray, ratio: float) -> tuple[np.ndarra
 
 
 def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures, radius: float,
-                   ratio: float) -> tuple[np.ndarray, np.ndarray]:
+                   ratio: float, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(landmark rows, keypoint rows) matched within `radius` px of each landmark's projection:
     each landmark's nearest keypoint by descriptor among those within the radius (the first on
     ties), Lowe's ratio test against the second nearest there, one landmark per keypoint.
@@ -136,7 +138,8 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     A kd-tree lists the (landmark, keypoint) pairs within the radius. Where they are many (a wide
     radius), one landmarks x keypoints product gives every similarity and the pairs outside the
     radius are masked; where they are few, only the pairs' descriptors are compared, and a segmented
-    maximum over each landmark's pairs finds its nearest two."""
+    maximum over each landmark's pairs finds its nearest two. With a torch `device` the product and
+    its masked reduction run there (`device_matching`)."""
     empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(lm_uv) == 0 or len(feats) == 0:
         return empty
@@ -146,10 +149,13 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     lm, kp = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     cells = len(lm_uv) * len(feats)
     if cells <= _DENSE_SIMILARITY and len(lm) * _DENSE_PAIR_SHARE >= cells:
-        sim = lm_desc @ feats.descriptor.T  # every similarity at once, then the radius as a mask
-        masked = np.full_like(sim, -np.inf)
-        masked[lm, kp] = sim[lm, kp]
-        first, s1, s2 = _row_best_two(masked)
+        if device is not None:
+            first, s1, s2 = masked_row_best_two(lm_desc, feats.descriptor, lm, kp, device)
+        else:
+            sim = lm_desc @ feats.descriptor.T  # every similarity at once, then the radius as a mask
+            masked = np.full_like(sim, -np.inf)
+            masked[lm, kp] = sim[lm, kp]
+            first, s1, s2 = _row_best_two(masked)
         ok, d1 = _ratio_test(s1, s2, ratio)  # a landmark with no keypoint in reach has s1 = -inf: fails
         rows = np.flatnonzero(ok)
         return _one_to_one(rows, first[rows], d1[rows])
@@ -171,24 +177,29 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     return _one_to_one(rows_with[ok], kp[first][ok], d1[ok])
 
 
-def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float,
+                   device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(landmark rows, keypoint rows): each keypoint's nearest landmark by descriptor, ratio test
     against the second nearest landmark, mutual (the keypoint is also the landmark's nearest: the
-    first keypoint that reaches the landmark's largest similarity)."""
+    first keypoint that reaches the landmark's largest similarity). With a torch `device` the
+    products and their reductions run there (`device_matching`)."""
     k = len(feats)
     if k == 0 or len(lm_desc) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
-    best_i = np.zeros(k, dtype=np.int64)
-    lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
-    for start in range(0, len(lm_desc), _CHUNK):
-        sim = feats.descriptor @ lm_desc[start:start + _CHUNK].T  # (K, chunk): per keypoint along rows
-        lm_max[start:start + sim.shape[1]] = sim.max(axis=0)
-        first, s1, s2 = _row_best_two(sim)
-        best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
-        cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
-        cand.sort(axis=1)
-        best_s = cand[:, :1:-1]  # the two largest, largest first
+    if device is not None:
+        best_s, best_i, lm_max = best_two_and_column_max(feats.descriptor, lm_desc, device)
+    else:
+        best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
+        best_i = np.zeros(k, dtype=np.int64)
+        lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
+        for start in range(0, len(lm_desc), _CHUNK):
+            sim = feats.descriptor @ lm_desc[start:start + _CHUNK].T  # (K, chunk): per keypoint along rows
+            lm_max[start:start + sim.shape[1]] = sim.max(axis=0)
+            first, s1, s2 = _row_best_two(sim)
+            best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
+            cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
+            cand.sort(axis=1)
+            best_s = cand[:, :1:-1]  # the two largest, largest first
     reach = np.flatnonzero(best_s[:, 0] == lm_max[best_i])  # keypoints that reach their landmark's largest ...
     _, once = np.unique(best_i[reach], return_index=True)  # ... the first of them per landmark: mutual
     ok, _ = _ratio_test(best_s[:, 0], best_s[:, 1], ratio)
@@ -210,7 +221,7 @@ def _guided_pass(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures
                  t: np.ndarray, radius: float, opts: FeatureMatchOptions, seed: int):
     """One guided pass from (R, t): (PnP result or None, the pass's record, matched uv, matched xyz)."""
     idx, uv = visible_landmarks(landmarks, camera, R, t, opts.view_margin_deg)
-    li, ki = guided_matches(uv, lm_desc[idx], feats, radius, opts.ratio)
+    li, ki = guided_matches(uv, lm_desc[idx], feats, radius, opts.ratio, opts.device)
     res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
     record = {"kind": "guided", "radius_px": radius, "candidates": int(len(idx)), "matches": int(len(li)),
               "inliers": 0 if res is None else res.num_inliers}
@@ -281,7 +292,7 @@ def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures,
                 matches: tuple[np.ndarray, np.ndarray] | None = None) -> FeatureResult:
     """The query's keypoints matched against every landmark's one descriptor (`matches`, when
     already computed: `global_matches`' landmark and keypoint rows), PnP, then tightened."""
-    li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio)
+    li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio, opts.device)
     record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
     return _from_correspondences("global", feats.uv[ki], landmarks.xyz[li], record, landmarks, lm_desc, feats,
                                  camera, opts, seed)

@@ -38,7 +38,7 @@ class QueryEvidence:
         """(landmark rows, keypoint rows) of the matches to every landmark."""
         if self._global is None:
             self._global = self._global_source() if self._global_source is not None \
-                else global_matches(self.landmark_desc, self.feats, self.opts.ratio)
+                else global_matches(self.landmark_desc, self.feats, self.opts.ratio, self.opts.device)
         return self._global
 
     def verified(self) -> VerifiedMatches | None:

@@ -72,13 +72,20 @@ def refine_options(options: RelocalizeOptions) -> RefineOptions:
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
 
 
-def feature_options(options: RelocalizeOptions, short_side: int) -> FeatureMatchOptions:
-    """The features_* settings in px of an image whose short side is `short_side`."""
+def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None) -> FeatureMatchOptions:
+    """The features_* settings in px of an image whose short side is `short_side`; the descriptor
+    products on the torch `device` (None: numpy on the CPU)."""
     scale = short_side / REFERENCE_SHORT_SIDE
     return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
-                               view_margin_deg=options.features_view_margin_deg)
+                               view_margin_deg=options.features_view_margin_deg, device=device)
+
+
+def matching_device(device: str) -> str | None:
+    """Where the relocalizer on `device` computes descriptor products: on a GPU there, on the CPU with
+    numpy (None), whose matches the CPU figures were measured with."""
+    return device if torch.device(device).type != "cpu" else None
 
 
 class Relocalizer(FocalVerdicts):
@@ -313,8 +320,8 @@ class Relocalizer(FocalVerdicts):
         if job is not None:  # the features, and (on the worker, while the guided passes run) their
             found_set = job.result()  # matches to every landmark where a verdict or a fallback needs them
             if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
-                global_pairs = global_match_job(self._landmark_desc, found_set.feats,
-                                                self.options.features_ratio).result
+                global_pairs = global_match_job(self._landmark_desc, found_set.feats, self.options.features_ratio,
+                                                matching_device(self.device)).result
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.
@@ -418,7 +425,7 @@ class Relocalizer(FocalVerdicts):
         feats = found_set.feats
         if found_set.resized:
             camera = camera.scaled(found_set.gray.shape[1], found_set.gray.shape[0])
-        opts = feature_options(self.options, min(found_set.gray.shape))
+        opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device))
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
