@@ -12,7 +12,7 @@ stage = Stage("relocalize", torch_device=True, model=ModelOptions, relocalize=Re
 def main(cfg, paths, out):
     inputs = Inputs(scene=paths.scene_file, map=paths.map_file, landmarks=paths.landmarks_file)
     return run(inputs, out, stage.options(cfg, "relocalize"), encoder_weights=stage.options(cfg, "model").encoder_weights,
-               seed=cfg.seed, scene=cfg.scene.name, device=stage.device)
+               seed=cfg.seed, scene=cfg.scene.name, device=stage.device, workers=cfg.query_workers)
 
 
 if __name__ == "__main__":

@@ -138,3 +138,36 @@ def test_cli_workers_give_the_same_records_in_the_same_order(tmp_path: Path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.strip().splitlines()[-1].endswith("--workers 0: must be a whole number >= 1")
+
+
+@pytest.mark.parametrize("value", ["0", "-2"])
+def test_query_workers_below_one_fail_at_once(value):
+    from usvc.pipeline.config import ConfigError, compose_for_script
+
+    with pytest.raises(ConfigError, match=f"query_workers={value} must be >= 1"):
+        compose_for_script("mini", [f"query_workers={value}"])
+    assert compose_for_script("mini", ["query_workers=3"]).query_workers == 3
+
+
+def test_the_relocalize_stage_localizes_its_frames_in_order_with_workers(tmp_path: Path, synthetic_query,
+                                                                         monkeypatch):
+    from usvc.core.scene import Frame
+    from usvc.relocalize.relocalize_scene import relocalize_frames
+
+    reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
+    image = tmp_path / "query.png"
+    cv2.imwrite(str(image), photo())
+    fx, fy, cx, cy = CAM.params
+    wrong = type(CAM)(CAM.model, CAM.width, CAM.height, (2 * fx, 2 * fy, cx, cy))  # twice the focal length
+    frames = [Frame(f"q{k}", image, camera, "test") for k, camera in enumerate([CAM, wrong, CAM, wrong, CAM])]
+    torch.set_num_threads(1)
+    alone = relocalize_frames(reloc, frames)
+    torch.set_num_threads(2)
+    try:
+        together = relocalize_frames(reloc, frames, workers=2)
+    finally:
+        torch.set_num_threads(1)
+    assert [e.success for e in alone] == [True, False, True, False, True]
+    for a, b in zip(alone, together, strict=True):
+        assert a.rejected == b.rejected
+        assert np.array_equal(a.R, b.R, equal_nan=True) and np.array_equal(a.t, b.t, equal_nan=True)

@@ -21,13 +21,12 @@ from usvc.relocalize.relocalizer import Relocalizer
 log = logging.getLogger(__name__)
 
 
-def relocalize_frames(relocalizer: Relocalizer, frames: list[Frame]) -> list[PoseEstimate]:
+def relocalize_frames(relocalizer: Relocalizer, frames: list[Frame], workers: int = 1) -> list[PoseEstimate]:
+    """Every frame's answer, in order, `workers` photos at a time (`Relocalizer.localize_many`)."""
     if not frames:
         raise UsvcError("the scene has no query images to relocalize")
-    results = []
-    for frame in tqdm(frames, desc="relocalize", unit="query"):
-        results.append(relocalizer.localize(frame.image_path, frame.camera))
-    return results
+    answers = relocalizer.localize_many(((f.image_path, f.camera) for f in frames), workers)
+    return list(tqdm(answers, total=len(frames), desc="relocalize", unit="query"))
 
 
 def _fallback_summary(results: list[PoseEstimate]) -> dict[str, Any]:

@@ -25,9 +25,9 @@ class Inputs:
 
 
 def run(inputs: Inputs, out: Path, options: RelocalizeOptions, *, encoder_weights: str | None, seed: int,
-        scene: str, device: str = "cpu") -> dict:
-    """Relocalize the queries of `scene` (the network on `device`) into `out`; returns the step's
-    figures and timings."""
+        scene: str, device: str = "cpu", workers: int = 1) -> dict:
+    """Relocalize the queries of `scene` (the network on `device`, `workers` photos at a time) into
+    `out`; returns the step's figures and timings."""
     frames = read_scene_h5(inputs.scene).split("test")
     mapped = read_map_header(inputs.map)["metadata"].get("scene")
     if scene != mapped:
@@ -35,8 +35,9 @@ def run(inputs: Inputs, out: Path, options: RelocalizeOptions, *, encoder_weight
                         "rerun the train stage for this scene")
     relocalizer = Relocalizer(inputs.map, encoder_weights, options, device=device, seed=seed,
                               landmarks=inputs.landmarks if options.refine == "features" else None)
-    results = relocalize_frames(relocalizer, frames)
+    results = relocalize_frames(relocalizer, frames, workers)
     stats = write_results(out, frames, results)
     log.info("relocalize (%s): %d queries, %d failed, %.0f ms/query", relocalizer.precision,
              stats["queries"], stats["failed"], stats["ms_per_query"])
-    return {**stats, "precision": relocalizer.precision, "map_precision": relocalizer.metadata.get("precision", "fp32")}
+    return {**stats, "precision": relocalizer.precision, "map_precision": relocalizer.metadata.get("precision", "fp32"),
+            "query_workers": workers}
