@@ -14,6 +14,12 @@ import torch
 _CHUNK_ENTRIES = 1 << 26  # similarities (4 bytes each) per block on the device: 256 MB
 
 
+def matching_device(device: str) -> str | None:
+    """Where a relocalizer on `device` computes its descriptor products: on a GPU there, on the CPU
+    with numpy (None), whose matches the CPU figures were measured with."""
+    return device if torch.device(device).type != "cpu" else None
+
+
 def _tensor(a: np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)
 

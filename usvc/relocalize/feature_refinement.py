@@ -28,6 +28,7 @@ from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
+from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.pnp import project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import VerifiedMatches
@@ -54,6 +55,16 @@ class FeatureMatchOptions:
     min_inliers: int  # fewer PnP inliers than this: the pass failed
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
+
+
+def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None) -> FeatureMatchOptions:
+    """The relocalize options' features_* settings in px of an image whose short side is `short_side`;
+    the descriptor products on the torch `device` (None: numpy on the CPU)."""
+    scale = short_side / REFERENCE_SHORT_SIDE
+    return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
+                               ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
+                               min_inliers=options.features_min_inliers,
+                               view_margin_deg=options.features_view_margin_deg, device=device)
 
 
 @dataclass

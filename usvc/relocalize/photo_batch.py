@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from typing import TypeVar
 
 from usvc.core.errors import UsvcError
+from usvc.pipeline import threads
 from usvc.relocalize.feature_job import inline_jobs
 
 T = TypeVar("T")
@@ -46,8 +47,7 @@ def query_threads(n: int) -> Iterator[None]:
 
     with _THREADS_LOCK:
         before = torch.get_num_threads(), cv2.getNumThreads()
-        torch.set_num_threads(n)
-        cv2.setNumThreads(n)
+        threads.apply(n)
         try:
             yield
         finally:

@@ -7,7 +7,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from usvc.core.device import DEVICE_CHOICES, device_problem, resolve_device
 from usvc.core.errors import UsvcError

@@ -32,7 +32,8 @@ from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_job import Job, QueryFeatureSet, feature_job, global_match_job
-from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, refine_by_features
+from usvc.relocalize.device_matching import matching_device
+from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, feature_options, refine_by_features
 from usvc.relocalize.focal_verdicts import (
     FOCAL_UNCHECKED,
     FOCAL_UNCHECKED_MAP,
@@ -50,9 +51,9 @@ from usvc.relocalize.camera_checks import (
 )
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
-from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.query_evidence import QueryEvidence
+from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.relocalize.verified_matching import observation_descriptors
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
@@ -70,22 +71,6 @@ FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the p
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
     return RefineOptions(radius_px=options.refine_radius_px, max_iterations=options.refine_max_iterations,
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
-
-
-def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None) -> FeatureMatchOptions:
-    """The features_* settings in px of an image whose short side is `short_side`; the descriptor
-    products on the torch `device` (None: numpy on the CPU)."""
-    scale = short_side / REFERENCE_SHORT_SIDE
-    return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
-                               ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
-                               min_inliers=options.features_min_inliers,
-                               view_margin_deg=options.features_view_margin_deg, device=device)
-
-
-def matching_device(device: str) -> str | None:
-    """Where the relocalizer on `device` computes descriptor products: on a GPU there, on the CPU with
-    numpy (None), whose matches the CPU figures were measured with."""
-    return device if torch.device(device).type != "cpu" else None
 
 
 class Relocalizer(FocalVerdicts):
