@@ -20,7 +20,6 @@ from contextlib import contextmanager
 from typing import TypeVar
 
 from usvc.core.errors import UsvcError
-from usvc.pipeline import threads
 from usvc.relocalize.feature_job import inline_jobs
 
 T = TypeVar("T")
@@ -47,7 +46,8 @@ def query_threads(n: int) -> Iterator[None]:
 
     with _THREADS_LOCK:
         before = torch.get_num_threads(), cv2.getNumThreads()
-        threads.apply(n)
+        torch.set_num_threads(n)
+        cv2.setNumThreads(n)
         try:
             yield
         finally:
