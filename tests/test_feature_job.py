@@ -1,6 +1,5 @@
 """The query's features found on a second thread while the network runs: the same keypoints,
-matches and answers as found in place; and `explains`, the focal-length observability test's
-refinement, which stops at the first pose that is a witness."""
+matches and answers as found in place."""
 
 from __future__ import annotations
 
@@ -11,17 +10,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 import pytest
 from test_feature_refinement import synthetic_relocalizer
-from test_refinement import CAM, R_TRUE, T_TRUE, backproject, make_map, photo, synthetic_query  # noqa: F401
+from test_refinement import CAM, make_map, photo, synthetic_query  # noqa: F401
 
-from usvc.core.scene import Camera
 from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize import pnp as pnp_module
 from usvc.relocalize.feature_job import feature_job, find_features, global_match_job
 from usvc.relocalize.feature_refinement import global_matches
-from usvc.relocalize.pnp import explains
 
 
 def textured(seed: int = 0, shape: tuple[int, int] = (360, 480)) -> np.ndarray:
@@ -88,41 +83,6 @@ def test_the_relocalizer_answers_the_same_with_its_features_found_beside_the_net
         assert a.success == b.success and a.rejected == b.rejected and a.refine_path == b.refine_path
         assert np.array_equal(a.R, b.R, equal_nan=True) and np.array_equal(a.t, b.t, equal_nan=True)
     assert [a.success for a in answers[True]] == [True, True, False]
-
-
-def _shallow_view(n: int = 300, depth_spread: float = 0.0):
-    rng = np.random.default_rng(3)
-    uv = rng.uniform([10, 10], [CAM.width - 10, CAM.height - 10], (n, 2))
-    xyz = backproject(uv, R_TRUE, T_TRUE)
-    if depth_spread:  # push the points along their rays: a deep scene
-        center = -R_TRUE.T @ T_TRUE
-        xyz = center + (xyz - center) * rng.uniform(1.0 - depth_spread, 1.0 + depth_spread, (n, 1))
-    return uv, xyz
-
-
-def test_explains_is_a_witness_test_that_stops_at_the_first_pose_reaching_the_need(monkeypatch):
-    calls = []
-    refine = pycolmap.refine_absolute_pose
-
-    def counted(*args):
-        calls.append(args[-1].max_num_iterations)
-        return refine(*args)
-
-    monkeypatch.setattr(pnp_module.pycolmap, "refine_absolute_pose", counted)
-    (fx, _), (cx, cy) = CAM.focal, CAM.principal_point
-    mask = np.ones(300, bool)
-    # the right camera explains every correspondence at once: the short refinement is the witness
-    uv, xyz = _shallow_view()
-    assert explains(CAM, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 0.8 * 300)
-    assert calls == [5]
-    # a deep scene: a focal length 1.5x off explains few of them, whatever the pose; every step ran
-    calls.clear()
-    uv, xyz = _shallow_view(depth_spread=0.6)
-    other = Camera("SIMPLE_PINHOLE", CAM.width, CAM.height, (1.5 * fx, cx, cy))
-    assert not explains(other, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 0.8 * 300)
-    assert calls == [5, 15, 80]
-    # a need nothing can meet is never met
-    assert not explains(CAM, uv, xyz, R_TRUE, T_TRUE, mask, 2.0, 301)
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")

@@ -76,3 +76,32 @@ def estimate_focal(
     a SIMPLE_PINHOLE camera, or None when no pose explains enough correspondences."""
     found = estimate_focal_pose(points2d, points3d, width, height, max_error_px, seed)
     return None if found is None else found.camera
+
+
+def focal_log_std(found: FocalPose, points2d: np.ndarray, points3d: np.ndarray) -> float:
+    """The standard deviation of ln(focal length) that `found`'s inliers allow: the Gauss-Newton
+    covariance sigma^2 (J^T J)^-1 of (rotation, translation, ln f) at the refined pose, with sigma^2
+    the inliers' residual variance. A deep view pins the focal length to a fraction of a per cent;
+    a shallow one leaves it free (a focal length off is then a camera moved along its axis). inf
+    when the inliers cannot tell it at all (too few, or a singular system)."""
+    mask = np.asarray(found.inlier_mask, bool)
+    p2 = np.asarray(points2d, np.float64).reshape(-1, 2)[mask]
+    p3 = np.asarray(points3d, np.float64).reshape(-1, 3)[mask]
+    f, cx, cy = found.camera.params
+    Y = p3 @ np.asarray(found.R, np.float64).T + np.asarray(found.t, np.float64)
+    n = len(Y)
+    if n < 8 or np.any(Y[:, 2] <= 0):
+        return float("inf")
+    z = Y[:, 2]
+    x, y = Y[:, 0] / z, Y[:, 1] / z
+    residual = np.concatenate([f * x + cx - p2[:, 0], f * y + cy - p2[:, 1]])
+    du = f * np.stack([1.0 / z, np.zeros(n), -x / z], 1)  # d(u, v) / d(camera coordinates)
+    dv = f * np.stack([np.zeros(n), 1.0 / z, -y / z], 1)
+    # a rotation increment w moves camera coordinates by w x Y; ln f scales (u - cx, v - cy)
+    J = np.concatenate([np.concatenate([np.cross(Y, d), d, (f * c)[:, None]], 1) for d, c in ((du, x), (dv, y))])
+    sigma2 = float(residual @ residual) / max(2 * n - 7, 1)
+    try:
+        cov = sigma2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(np.sqrt(cov[6, 6])) if np.isfinite(cov[6, 6]) and cov[6, 6] >= 0 else float("inf")

@@ -20,9 +20,13 @@ FOCAL_RANGE = (0.1, 20.0)
 FOCAL_SPREAD = 3.0
 MAX_PIXEL_ASPECT = 1.25  # fx / fy (either way) beyond this: the photo was resized to another aspect
 PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size from the centre: a warning
-# The feature pose's matches "cannot tell" the focal length when a focal (1 + focal_tolerance)x off
-# still explains this fraction of its inliers (a shallow view: distance trades for focal length).
+# A camera with non-square pixels is no better than the square-pixel one while the latter keeps
+# this fraction of its support.
 FOCAL_OBSERVABLE_FRACTION = 0.8
+# The focal lengths a photo's matches allow: P4Pf's estimate this many standard deviations of
+# ln(focal) either way (Gauss-Newton covariance at its inliers). The features refuse a given focal
+# length only when none of them is within focal_tolerance of it, and vouch for it only when all are.
+FOCAL_SIGMAS = 4.0
 
 
 def implausible_focal(focal: float, width: int, height: int, what: str) -> str:

@@ -9,14 +9,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose
+from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose, focal_log_std
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.relocalize.camera_checks import FOCAL_OBSERVABLE_FRACTION
+from usvc.relocalize.camera_checks import FOCAL_SIGMAS
 from usvc.relocalize.feature_refinement import FeatureResult
 from usvc.relocalize.options import RelocalizeOptions
-from usvc.relocalize.pnp import PnPResult, explains
+from usvc.relocalize.pnp import PnPResult
 from usvc.relocalize.query_evidence import QueryEvidence
 
 FOCAL_UNOBSERVABLE = "unobservable"
@@ -122,29 +122,26 @@ class FocalVerdicts:
         FOCAL_UNOBSERVABLE when they cannot tell. The focal length is estimated (P4Pf) on
         correspondences that do not depend on the given intrinsics (guided matches were picked by
         a projection with them): the matches to every landmark, or with `verified` SIFT + PnP's
-        verified matches. A view of a shallow scene explains its matches with a focal length
-        (1 + focal_tolerance)x off about as well (the pose moves along the optical axis instead):
-        then the features cannot tell."""
+        verified matches. Its inliers allow the focal lengths within FOCAL_SIGMAS standard
+        deviations of the estimate (`focal_log_std`): none within the tolerance of the given one
+        refuses it, all of them vouch for it. A shallow view allows the given one and one
+        (1 + focal_tolerance)x off alike (the pose moves along the optical axis instead): then the
+        features cannot tell."""
         assert self.landmarks is not None
         tol = self.options.focal_tolerance
         camera, opts = evidence.camera, evidence.opts
+        given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
+        band = 1.0 + tol
         for uv, xyz in evidence.unguided(global_matches=not verified, verified=verified):
             found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
             if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
                 continue
-            f, cx, cy = found.camera.params
-            inliers = int(found.inlier_mask.sum())
-            shallow = False
-            for scale in (1.0 / (1.0 + tol), 1.0 + tol):  # can a focal length this far off explain the same inliers?
-                other = Camera("SIMPLE_PINHOLE", camera.width, camera.height, (f * scale, cx, cy))
-                if explains(other, uv, xyz, found.R, found.t, found.inlier_mask, opts.max_error_px,
-                            FOCAL_OBSERVABLE_FRACTION * inliers):
-                    shallow = True
-                    break
-            if shallow:
-                continue
-            ratio = f / float(np.sqrt(camera.focal[0] * camera.focal[1]))
-            if abs(np.log(ratio)) <= np.log1p(tol):
+            ratio = float(found.camera.params[0]) / given
+            # the focal lengths the inliers allow: FOCAL_SIGMAS standard deviations either way
+            spread = float(np.exp(min(FOCAL_SIGMAS * focal_log_std(found, uv, xyz), 50.0)))
+            if ratio * spread < 1.0 / band or ratio / spread > band:  # none of them within the tolerance
+                return focal_reason("the matched features imply", ratio, tol, source)
+            if ratio * spread <= band and ratio / spread >= 1.0 / band:  # all of them within it
                 return ""
-            return focal_reason("the matched features imply", ratio, tol, source)
+            # else a shallow view: the matches allow the given focal length and one (1 + tol)x off alike
         return FOCAL_UNOBSERVABLE

@@ -171,35 +171,6 @@ def _solve_pycolmap(
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), np.asarray(res["inlier_mask"], bool)
 
 
-# The refinement in `explains`, in steps of these many iterations, each from the last one's pose
-# (100 in all: pycolmap's default budget): most witnesses are found within the first steps.
-EXPLAIN_ITERATIONS = (5, 15, 80)
-
-
-def explains(camera: Camera, points2d: np.ndarray, points3d: np.ndarray, R: np.ndarray, t: np.ndarray,
-             mask: np.ndarray, max_error_px: float, needed: float) -> bool:
-    """Whether `camera`, held fixed, explains at least `needed` of the correspondences within
-    `max_error_px` with some pose: the pose is refined (non-linear, pycolmap) from (R, t) on the
-    `mask` correspondences in steps (EXPLAIN_ITERATIONS), and the test stops at the first pose that
-    reaches `needed`: any such pose is a witness, and a full refinement costs 2-8x a short one."""
-    p2 = np.ascontiguousarray(np.asarray(points2d, dtype=np.float64).reshape(-1, 2))
-    p3 = np.ascontiguousarray(np.asarray(points3d, dtype=np.float64).reshape(-1, 3))
-    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
-    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
-    for iterations in EXPLAIN_ITERATIONS:
-        options = pycolmap.AbsolutePoseRefinementOptions()
-        options.max_num_iterations = iterations
-        res = pycolmap.refine_absolute_pose(pose, p2, p3, np.asarray(mask, bool), cam, options)
-        if res is None:
-            return False
-        pose = res["cam_from_world"]
-        support = int(reprojection_inliers(camera, p2, p3, pose.rotation.matrix(),
-                                           np.asarray(pose.translation, dtype=np.float64), max_error_px).sum())
-        if support >= needed:
-            return True
-    return False
-
-
 def solve_pnp(
     points2d: np.ndarray,
     points3d: np.ndarray,

@@ -291,9 +291,9 @@ class Relocalizer(FocalVerdicts):
                                 rejected=no_focal, warnings=warnings, pose_found=False)
         map_focal = None  # the map's own estimate of the focal length (P4Pf on its coordinates) for its verdicts:
         if camera is not None and self.prior and intrinsics is not None and self.options.focal_tolerance > 0 \
-                and self.map_judges_focal:  # on the worker, while the dense PnP and the guided passes run
+                and self.map_judges_focal:  # found where first asked for: the features' verdict mostly decides alone
             map_focal = Job(estimate_focal, pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
-                            self.seed).result
+                            self.seed, background=False).result
         if camera is not None and self.prior:
             result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
                                seed=self.seed, min_inliers=self.options.min_inliers,
