@@ -20,25 +20,27 @@ from usvc.train.trainer import train_head
 
 def test_default_budget_keeps_small_scenes_and_grows_with_photos():
     b, t = BufferOptions(), TrainOptions()
-    # Up to 64 photos: the budget the defaults were tuned on (mini's 60 photos), 2,000 steps.
+    # Up to 64 photos: the budget the defaults were tuned on (mini's 60 photos), 500 steps.
     for photos in (1, 20, 60, 64):
-        assert b.cells_for(photos) == 262144 and t.steps_for(b.cells_for(photos)) == 2000
+        assert b.cells_for(photos) == 262144 and t.steps_for(b.cells_for(photos)) == 500
     # A 128-photo room gets twice the cells and twice the steps, linearly in between ...
-    assert b.cells_for(128) == 2 * 262144 and t.steps_for(b.cells_for(128)) == 4000
-    assert b.cells_for(100) == 409600 and t.steps_for(409600) == 3125
+    assert b.cells_for(128) == 2 * 262144 and t.steps_for(b.cells_for(128)) == 1000
+    assert b.cells_for(100) == 409600 and t.steps_for(409600) == 781
     # ... up to the memory bound.
-    assert b.cells_for(256) == b.cells_for(5000) == 1048576 and t.steps_for(1048576) == 8000
+    assert b.cells_for(256) == b.cells_for(5000) == 1048576 and t.steps_for(1048576) == 2000
 
 
-def test_full_training_is_three_times_the_default():
-    """train=full: the full-length recipe, one override away."""
+@pytest.mark.parametrize("name, steps", [("long", 2000), ("full", 6000)])
+def test_longer_trainings_are_the_default_with_more_passes(name: str, steps: int):
+    """train=long (a map that judges focal lengths) and train=full (the full-length recipe), one
+    override away: 4x and 12x the default's 500 steps on the smallest buffer, nothing else changed."""
     from usvc.pipeline.config import compose_for_script, group_options
 
-    full = group_options(compose_for_script("mini", ["train=full"]), "train")
+    longer = group_options(compose_for_script("mini", [f"train={name}"]), "train")
     default = group_options(compose_for_script("mini", []), "train")
-    assert full.steps_for(262144) == 6000 and default.steps_for(262144) == 2000
-    assert {k: v for k, v in vars(full).items() if k != "passes"} == {k: v for k, v in vars(default).items()
-                                                                      if k != "passes"}
+    assert longer.steps_for(262144) == steps and default.steps_for(262144) == 500
+    assert {k: v for k, v in vars(longer).items() if k != "passes"} == {k: v for k, v in vars(default).items()
+                                                                        if k != "passes"}
 
 
 def test_explicit_size_and_iterations_win():

@@ -19,7 +19,7 @@ class TrainOptions:
     Depth bounds are in units of the median scene depth."""
 
     iterations: int = 0  # optimiser steps; 0 = passes over the buffer (steps_for), so training grows with the buffer
-    passes: float = 15.625  # iterations=0: passes x buffer cells / batch_size steps (2,000 on the smallest buffer, 262,144 cells; train=full: 3x)
+    passes: float = 3.90625  # iterations=0: passes x buffer cells / batch_size steps (500 on the smallest buffer, 262,144 cells; train=long: 4x, train=full: 12x)
     batch_size: int = 2048  # buffer cells per step
     optimizer: str = "adamw"  # adamw | adabelief
     lr: float = 5e-3  # peak learning rate of the one-cycle schedule, or the constant one
