@@ -290,3 +290,26 @@ def test_where_only_the_map_could_tell_the_focal_length_it_judges_if_it_can(tmp_
                    for w in est.warnings)
         assert asked == [False]  # not SIFT + PnP's matches: in a shallow view they cannot tell either
         assert est.to_json().get("verified") is None
+
+
+def test_the_maps_focal_estimate_is_found_only_where_its_verdict_is_asked_for(tmp_path: Path, monkeypatch):
+    """Where the photo's features tell the focal length (a deep enough view), the map's P4Pf on its
+    coordinates is never computed; where they cannot, it is, once, and the map's verdict decides."""
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
+    calls: list[int] = []
+    real = relocalizer_module.estimate_focal
+    monkeypatch.setattr(relocalizer_module, "estimate_focal", lambda *a, **k: calls.append(len(a[0])) or real(*a, **k))
+    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 2)  # side work on the worker
+    reloc = Relocalizer(path, tmp_path / "encoder.pt")
+    reloc.map_judges_focal = True
+    (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
+    right = reloc.localize(photo(), CAM)
+    wrong = reloc.localize(photo(), (2 * fx, 2 * fy, cx, cy))
+    assert right.success and right.refine_path == "guided" and not right.warnings, right.rejected
+    assert not wrong.success and wrong.rejected.startswith("the matched features imply a focal length 0.5")
+    assert calls == []
+    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict",
+                        lambda *a, **k: relocalizer_module.FOCAL_UNOBSERVABLE)
+    right = reloc.localize(photo(), CAM)
+    assert right.success and len(calls) == 1, right.rejected
