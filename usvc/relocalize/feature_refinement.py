@@ -343,20 +343,23 @@ def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
 def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
                        R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
                        verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
-                       global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> FeatureResult:
+                       global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+                       weak_prior: bool = False) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
-    from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior),
-    matching against every landmark (unless not `use_global`; `global_pairs` gives those matches
-    when they are computed already) and SIFT + PnP's evidence (`verified`, called only then: it is
-    the expensive one); the hypothesis with the most support wins. `lm_desc` are the landmarks'
-    unit descriptors."""
+    from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior,
+    or the prior is `weak_prior`: too few of the map's cells agree with it, so the guided passes
+    may have settled on a wrong pose), matching against every landmark (unless not `use_global`;
+    `global_pairs` gives those matches when they are computed already); when the guided passes find
+    none, SIFT + PnP's evidence too (`verified`, called only then: it is the expensive one). The
+    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors."""
     hypotheses = []
     if R0 is not None and t0 is not None:
         hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
-    if not hypotheses or not hypotheses[0].success:
-        if use_global:
-            hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
-                                          global_pairs() if global_pairs is not None else None))
+    guided = bool(hypotheses) and hypotheses[0].success
+    if use_global and (not guided or weak_prior):
+        hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
+                                      global_pairs() if global_pairs is not None else None))
+    if not guided:
         found = verified() if verified is not None else None
         if found is not None:
             hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, found, opts, seed))

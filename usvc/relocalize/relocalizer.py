@@ -430,18 +430,21 @@ class Relocalizer(FocalVerdicts):
                 evidence.focal_estimated = True
                 prior = (fp.R, fp.t) if prior[0] is None else prior
                 break
-        found = self._hypotheses(feats, camera, prior, opts, evidence)
+        # a learned pose that too few cells agree with may lead the guided passes to a wrong pose: the
+        # matches to every landmark get their chance too (computed already, for the focal verdict)
+        weak = bool(dense.success and dense.num_inliers < self.options.min_confidence * len(dense.inlier_mask))
+        found = self._hypotheses(feats, camera, prior, opts, evidence, weak)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
             return found, "", full, evidence
         return found, verdict.result() if verdict is not None else self._feature_focal_verdict(evidence, source), \
             full, evidence
 
     def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
-                    evidence: QueryEvidence) -> FeatureResult:
+                    evidence: QueryEvidence, weak_prior: bool = False) -> FeatureResult:
         assert self.landmarks is not None
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed, verified=evidence.verified, use_global=evidence.use_global,
-                                   global_pairs=evidence.global_pairs)
+                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()
         return found
