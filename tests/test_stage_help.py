@@ -28,7 +28,7 @@ def test_train_help_lists_its_groups_with_values_and_meanings():
                          capture_output=True, text=True, check=True).stdout
     assert "train.lr=0.01  # peak learning rate" in out  # the override's value, the field's comment
     assert "model.head_width=256" in out  # model=small, the configured default
-    assert "train (TrainOptions, usvc/train/options.py; train=<default|fast|full>)" in out  # the alternatives too
+    assert "train (TrainOptions, usvc/train/options.py; train=<default|full|long>)" in out  # the alternatives too
     assert "relocalize.max_error_px" not in out  # train does not read the relocalize group
     assert "base_" not in out
 
