@@ -22,7 +22,7 @@ MAX_PIXEL_ASPECT = 1.25  # fx / fy (either way) beyond this: the photo was resiz
 PRINCIPAL_OFFSET = 0.1  # principal point farther than this fraction of the size from the centre: a warning
 # A camera with non-square pixels is no better than the square-pixel one while the latter keeps
 # this fraction of its support.
-FOCAL_OBSERVABLE_FRACTION = 0.8
+SQUARE_PIXEL_KEPT_FRACTION = 0.8
 # The focal lengths a photo's matches allow: P4Pf's estimate this many standard deviations of
 # ln(focal) either way (Gauss-Newton covariance at its inliers). The features refuse a given focal
 # length only when none of them is within focal_tolerance of it, and vouch for it only when all are.
@@ -74,7 +74,7 @@ def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: n
     """Why the photo looks stretched ("" when it does not): a pinhole camera with non-square pixels
     (fx/fy beyond MAX_PIXEL_ASPECT), fitted with the pose from (camera, R, t), explains clearly more
     correspondences than `camera` (square pixels) does: its inliers are at most
-    FOCAL_OBSERVABLE_FRACTION of the fitted camera's. A photo resized to another aspect ratio
+    SQUARE_PIXEL_KEPT_FRACTION of the fitted camera's. A photo resized to another aspect ratio
     looks like this; where the two explain about as much, the photo cannot tell and this says nothing."""
     p2 = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     p3 = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -98,7 +98,7 @@ def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: n
         mask = grown
     aspect = float(np.exp(x[6] - x[7]))
     support, kept = int(mask.sum()), int(base.sum())
-    if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > FOCAL_OBSERVABLE_FRACTION * support:
+    if max(aspect, 1.0 / aspect) <= MAX_PIXEL_ASPECT or kept > SQUARE_PIXEL_KEPT_FRACTION * support:
         return ""
     return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
             "of its correspondences as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
