@@ -5,6 +5,7 @@ given focal length."""
 from __future__ import annotations
 
 import re
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,21 @@ def test_the_views_measured_are_capped_and_picked_by_the_seed(monkeypatch: pytes
     assert map_focal_error(_CoordinateHead(), buf, "fp32", seed=1) != a
     monkeypatch.setattr(focal_calibration, "estimate_focal", lambda *args: None)  # no pose anywhere
     assert map_focal_error(_CoordinateHead(), buf, "fp32")["p90"] == FOCAL_ERROR_CAP
+
+
+def test_views_solved_side_by_side_give_the_figures_of_one_at_a_time(monkeypatch: pytest.MonkeyPatch):
+    buf = _buffer(0.02)
+    one = map_focal_error(_CoordinateHead(), buf, "fp32", workers=1)
+    assert map_focal_error(_CoordinateHead(), buf, "fp32", workers=4) == one
+    # and they do run side by side: two solves meet at a barrier that one thread alone never passes
+    barrier, solve = threading.Barrier(2, timeout=10), focal_calibration.estimate_focal
+
+    def meeting(*args):
+        barrier.wait()
+        return solve(*args)
+
+    monkeypatch.setattr(focal_calibration, "estimate_focal", meeting)
+    assert map_focal_error(_CoordinateHead(), _buffer(0.02, views=2), "fp32", workers=2)["views"] == 2
 
 
 def test_the_measure_uses_the_relocalizers_threshold():

@@ -47,13 +47,15 @@ def _registered(stage: str) -> set[str]:
     tree = ast.parse((REPO / (_module(stage).replace(".", "/") + ".py")).read_text())
     calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Stage"]
     assert len(calls) == 1, f"{stage}: one Stage(...) call expected"
-    return {k.arg for k in calls[0].keywords} - {"artifact", "record", "torch_device"}
+    return {k.arg for k in calls[0].keywords} - {"artifact", "record", "torch_device", "for_rendered_views"}
 
 
 def _read_untyped(stage: str) -> set[str]:
     """`cfg.<group>.<key>` reads of groups the stage does not register (plain values from YAML)."""
     src = (REPO / (_module(stage).replace(".", "/") + ".py")).read_text()
     reads = {f"{g}.{k}" for g, k in re.findall(r"cfg\.(\w+)\.(\w+)", src) if g in GROUPS}
+    if "for_rendered_views=True" in src:  # the shell reads it for the stage (usvc.pipeline.stage)
+        reads.add("buffer.rendered_views")
     return {r for r in reads if r.split(".")[0] not in _registered(stage) and r != "scene.name"}
 
 

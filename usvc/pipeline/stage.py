@@ -80,13 +80,16 @@ class Stage:
     """One pipeline stage: its name, the config groups it reads, the artifact folder it writes."""
 
     def __init__(self, name: str, artifact: str | None = "", record: str = "", torch_device: bool = False,
-                 **schemas: type) -> None:
+                 for_rendered_views: bool = False, **schemas: type) -> None:
         """`artifact`: the ScenePaths folder it writes ("" = the stage's name; None = none: the
         step writes where its options say, e.g. generate); `record`: the name of its
         results/<scene>/<record>.json ("" = the stage's name); `torch_device`: the step runs torch
-        on `device=` (resolved before the step, recorded with its timings); `schemas`: group ->
-        options dataclass."""
+        on `device=` (resolved before the step, recorded with its timings); `for_rendered_views`:
+        the step feeds only the rendered views (`buffer.rendered_views`): without them the shell
+        writes `skipped_without_rendered_views` and the step (and torch) is never loaded;
+        `schemas`: group -> options dataclass."""
         self.name = name
+        self.for_rendered_views = for_rendered_views
         self.artifact = name if artifact == "" else artifact
         self.record = record or name
         self.schemas = register_configs(schemas)
@@ -109,20 +112,24 @@ class Stage:
 
     def _run(self, fn: StepFn, cfg: DictConfig) -> None:
         validate(cfg, self.schemas)
-        self.threads = threads.apply(threads.resolve(cfg.threads))
+        skipped = self.for_rendered_views and not cfg.buffer.rendered_views
+        self.threads = threads.apply(threads.resolve(cfg.threads), torch_pool=self.torch_device and not skipped)
         log.debug("threads: %d", self.threads)
         verbose = log.isEnabledFor(logging.DEBUG) or ("sfm" in self.schemas and bool(cfg.sfm.verbose))
         quiet_third_party(verbose=verbose)
         log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
         ran_on = {}
-        if self.torch_device:
+        if self.torch_device and not skipped:
             self.device = resolve_device(cfg.device)
             ran_on = device_record(self.device)
             log.debug("device: %s (%s)", self.device, ran_on["device_name"])
         out, record = self.outputs(cfg)
         t0 = time.perf_counter()
         with atomic_dir(out) if out is not None else nullcontext(None) as tmp:
-            stats = fn(cfg, scene_paths(cfg), tmp) or {}
+            if skipped:
+                stats = skipped_without_rendered_views(tmp, self.name, cfg.method)
+            else:
+                stats = fn(cfg, scene_paths(cfg), tmp) or {}
         write_json(record, {**stats, **ran_on, "seconds": time.perf_counter() - t0,
                             "peak_memory_mb": peak_memory_mb()})
 

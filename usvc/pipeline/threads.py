@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from pathlib import Path
 
 ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -165,11 +166,15 @@ def export_to_env(n: int) -> None:
         os.environ[EXPORT_MARK] = str(n)
 
 
-def apply(n: int) -> int:
-    """Set torch's and OpenCV's thread pools to `n` (COLMAP takes it through its options)."""
+def apply(n: int, torch_pool: bool = True) -> int:
+    """Set OpenCV's thread pool and torch's to `n` (COLMAP takes it through its options). Without
+    `torch_pool` torch's is set only where torch is loaded already: a step that runs no torch
+    does not pay for importing it (about 2 s of every such stage's start)."""
     import cv2
-    import torch
 
-    torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    if torch_pool or "torch" in sys.modules:
+        import torch
+
+        torch.set_num_threads(n)
     return n

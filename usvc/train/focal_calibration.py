@@ -12,6 +12,8 @@ and the relocalizer lets the map judge only when it is within the focal toleranc
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import torch
 
@@ -30,32 +32,40 @@ FOCAL_ERROR_CAP = 10.0  # |ln ratio| recorded for a view whose focal length no p
 
 @torch.inference_mode()
 def map_focal_error(head: Head, buf: TrainingBuffer, precision: str, device: str = "cpu",
-                    seed: int = 0) -> dict[str, float | int]:
+                    seed: int = 0, workers: int | None = None) -> dict[str, float | int]:
     """|ln(estimated / known focal)| of the head's coordinates over up to FOCAL_CHECK_VIEWS views of
-    the buffer: {"views", "median", "p90"} (FOCAL_ERROR_CAP for a view P4Pf finds no pose in)."""
+    the buffer: {"views", "median", "p90"} (FOCAL_ERROR_CAP for a view P4Pf finds no pose in).
+    `workers` views are solved at a time (default: torch's thread count)."""
     views = np.unique(buf.view_index)
     rng = np.random.default_rng([seed, 3])
     picked = np.sort(rng.choice(views, size=min(FOCAL_CHECK_VIEWS, len(views)), replace=False))
     order = np.argsort(buf.view_index, kind="stable")
     starts = np.searchsorted(buf.view_index[order], picked, side="left")
     ends = np.searchsorted(buf.view_index[order], picked, side="right")
-    errors = []
     was_training = head.training
     head.eval()
+    problems = []
     for v, a, b in zip(picked, starts, ends):
         rows = order[a:b]
         x = torch.from_numpy(buf.features[rows]).to(device=device, dtype=torch.float32)
         with autocast(precision, device):
             xyz = head.forward_flat(x).float().cpu().numpy().astype(np.float64)
-        K = buf.view_K[v]
+        problems.append((buf.pixels[rows].astype(np.float64), xyz, buf.view_K[v]))
+    head.train(was_training)
+
+    def error(problem: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+        uv, xyz, K = problem
         # views are centred on their principal point (prepared images are undistorted and centred)
         width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
         threshold = FOCAL_CHECK_MAX_ERROR_PX * min(width, height) / FOCAL_CHECK_SHORT_SIDE
-        camera = estimate_focal(buf.pixels[rows].astype(np.float64), xyz, width, height, threshold, seed)
+        camera = estimate_focal(uv, xyz, width, height, threshold, seed)
         known = float(np.sqrt(K[0, 0] * K[1, 1]))
-        errors.append(FOCAL_ERROR_CAP if camera is None
-                      else min(abs(float(np.log(camera.params[0] / known))), FOCAL_ERROR_CAP))
-    head.train(was_training)
-    err = np.asarray(errors)
+        return FOCAL_ERROR_CAP if camera is None else min(abs(float(np.log(camera.params[0] / known))),
+                                                          FOCAL_ERROR_CAP)
+
+    # Each view's P4Pf is seeded on its own and COLMAP's solver releases the GIL: the views run side
+    # by side on the process's threads, with the same result as one after another.
+    with ThreadPoolExecutor(max(1, min(workers or torch.get_num_threads(), len(problems) or 1))) as pool:
+        err = np.asarray(list(pool.map(error, problems)))
     return {"views": int(len(err)), "median": round(float(np.median(err)), 4),
             "p90": round(float(np.percentile(err, 90)), 4)}
