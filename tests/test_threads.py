@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -117,3 +118,35 @@ def test_a_parents_export_is_not_taken_for_a_users_ceiling():
     users = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                            env={**env, "OMP_NUM_THREADS": "3", threads.EXPORT_MARK: "2"})
     assert ours.stdout.strip() == "''" and users.stdout.strip() == "'3'"
+
+
+def _imports_torch(code: str) -> tuple[bool, str]:
+    out = subprocess.run([sys.executable, "-c", code + "\nimport sys; print('torch' in sys.modules)"],
+                         capture_output=True, text=True, check=True).stdout.split()
+    return out[-1] == "True", " ".join(out[:-1])
+
+
+def test_a_step_without_torch_does_not_load_it_for_the_thread_setting():
+    loaded, _ = _imports_torch("from usvc.pipeline import threads; threads.apply(2, torch_pool=False)")
+    assert not loaded
+    loaded, n = _imports_torch("from usvc.pipeline import threads; threads.apply(2)\n"
+                               "import torch; print(torch.get_num_threads())")
+    assert loaded and n == "2"
+    # torch loaded already: its pool is set all the same
+    _, n = _imports_torch("import torch; from usvc.pipeline import threads; threads.apply(1, torch_pool=False)\n"
+                          "print(torch.get_num_threads())")
+    assert n == "1"
+
+
+@pytest.mark.slow
+def test_a_3dgs_stage_without_rendered_views_skips_without_loading_torch(tmp_path):
+    """`method=multiview` renders no views: the gaussians stage writes why, reads no input, and
+    neither loads its step nor torch (a second or two instead of four to six)."""
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "stages.gaussians", "scene=mini", "threads=1",
+                           f"data_dir={tmp_path / 'data'}", f"results_dir={tmp_path / 'results'}",
+                           f"hydra.run.dir={tmp_path / 'logs'}"], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "not computed" in (tmp_path / "data/mini/gaussians/NOT_COMPUTED.txt").read_text()
+    imported = {line.split("|")[-1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
+    assert "usvc.gaussians.run" not in imported and "torch" not in imported
