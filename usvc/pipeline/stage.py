@@ -119,7 +119,9 @@ class Stage:
         quiet_third_party(verbose=verbose)
         log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
         ran_on = {}
-        if self.torch_device and not skipped:
+        # A skipped stage runs no torch, yet a device asked for by name is still checked (a machine
+        # without it stops here as at any torch stage); `auto` and `cpu` need no torch to check.
+        if self.torch_device and (not skipped or str(cfg.device) not in ("auto", "cpu")):
             self.device = resolve_device(cfg.device)
             ran_on = device_record(self.device)
             log.debug("device: %s (%s)", self.device, ran_on["device_name"])
