@@ -76,9 +76,13 @@ def test_the_relocalizer_answers_the_same_with_its_features_found_beside_the_net
     reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
     answers = {}
-    for background in (False, True):
-        monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda b=background: 2 if b else 1)
-        answers[background] = [reloc.localize(photo(), intr) for intr in (CAM, None, (2 * fx, 2 * fy, cx, cy))]
+    threads = feature_job_module.torch.get_num_threads()
+    try:
+        for background in (False, True):
+            monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda b=background: 2 if b else 1)
+            answers[background] = [reloc.localize(photo(), intr) for intr in (CAM, None, (2 * fx, 2 * fy, cx, cy))]
+    finally:  # the split of a query's threads put back what the patched count said
+        feature_job_module.torch.set_num_threads(threads)
     for a, b in zip(answers[False], answers[True]):
         assert a.success == b.success and a.rejected == b.rejected and a.refine_path == b.refine_path
         assert np.array_equal(a.R, b.R, equal_nan=True) and np.array_equal(a.t, b.t, equal_nan=True)

@@ -203,6 +203,33 @@ def test_guided_and_global_matching_are_their_definitions(dense_share: int, devi
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
 
 
+def test_visible_landmarks_are_their_definition():
+    """In front, inside the image, and seen from within the mapped cone widened by the margin: the
+    same landmarks and pixels as each test applied to every landmark, on a map where each test
+    removes some (behind the camera, outside the image, seen from too far aside)."""
+    from usvc.relocalize.pnp import project_points
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    xyz = rng.normal(0.0, 2.0, (n, 3)) + (-R_TRUE.T @ T_TRUE) + 2.0 * R_TRUE[2]  # around the view, some behind
+    view = rng.normal(0.0, 1.0, (n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    cone = rng.uniform(0.0, 120.0, n).astype(np.float32)
+    landmarks = Landmarks("synthetic", xyz, np.zeros((n, 128), np.uint8), view.astype(np.float32), cone,
+                          np.full(n, 2, np.int32), 120)
+    uv, depth = project_points(CAM, xyz, R_TRUE, T_TRUE)
+    inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= CAM.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= CAM.height)
+    ray = (-R_TRUE.T @ T_TRUE)[None] - xyz
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(ray * landmarks.view_dir, axis=1), -1.0, 1.0)))
+    for margin in (0.0, 45.0, 180.0):
+        want = np.flatnonzero(inside & (angle <= np.minimum(cone + margin, 180.0)))
+        idx, got_uv = visible_landmarks(landmarks, CAM, R_TRUE, T_TRUE, margin)
+        assert np.array_equal(idx, want) and np.array_equal(got_uv, uv[want]), margin
+        assert 0 < len(idx) < inside.sum() or margin == 180.0
+    assert 0 < inside.sum() < n
+
+
 def test_landmarks_behind_or_seen_from_the_other_side_are_not_candidates():
     landmarks, _ = scene()
     flipped = Landmarks("synthetic", landmarks.xyz, landmarks.descriptor, -landmarks.view_dir,

@@ -77,6 +77,12 @@ def find_features(gray01: np.ndarray, short_side: int, max_keypoints: int, extra
     return QueryFeatureSet(gray01, resized, feats)
 
 
+def runs_beside() -> bool:
+    """Whether a job started now on this thread runs on the worker thread: torch runs on more than
+    one thread and this thread is not in `inline_jobs`."""
+    return torch.get_num_threads() > 1 and not getattr(_THREAD, "inline", False)
+
+
 class Job:
     """`fn(*args)`: started at once on the worker thread when `background` (default: torch runs on
     more than one thread and this thread is not in `inline_jobs`), else run in place when `result`
@@ -88,7 +94,7 @@ class Job:
         self._done = False
         self._value: T | None = None
         if background is None:
-            background = torch.get_num_threads() > 1 and not getattr(_THREAD, "inline", False)
+            background = runs_beside()
         self._future: Future | None = _pool().submit(fn, *args) if background else None
 
     @property

@@ -99,12 +99,11 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
     uv, depth = project_points(camera, landmarks.xyz, R, t)
     ok = (depth > 0) & np.all(np.isfinite(uv), axis=1)
     ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    center = camera_centers(R, t)
-    ray = center[None] - landmarks.xyz
+    near = np.flatnonzero(ok)  # the viewing cone is tested on these only (a view sees a fraction of the map)
+    ray = camera_centers(R, t)[None] - landmarks.xyz[near]
     ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
-    angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ray, landmarks.view_dir), -1.0, 1.0)))
-    ok &= angle <= np.minimum(landmarks.view_angle_deg + margin_deg, 180.0)
-    idx = np.flatnonzero(ok)
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ray, landmarks.view_dir[near]), -1.0, 1.0)))
+    idx = near[angle <= np.minimum(landmarks.view_angle_deg[near] + margin_deg, 180.0)]
     return idx, uv[idx]
 
 
@@ -164,8 +163,9 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
             first, s1, s2 = masked_row_best_two(lm_desc, feats.descriptor, lm, kp, device)
         else:
             sim = lm_desc @ feats.descriptor.T  # every similarity at once, then the radius as a mask
+            within = lm * sim.shape[1] + kp  # flat indices: 1-D take and put, far cheaper than 2-D fancy indexing
             masked = np.full_like(sim, -np.inf)
-            masked[lm, kp] = sim[lm, kp]
+            np.put(masked, within, np.take(sim, within))
             first, s1, s2 = _row_best_two(masked)
         ok, d1 = _ratio_test(s1, s2, ratio)  # a landmark with no keypoint in reach has s1 = -inf: fails
         rows = np.flatnonzero(ok)

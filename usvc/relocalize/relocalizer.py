@@ -31,7 +31,7 @@ from usvc.model.head import Regressor
 from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.feature_job import Job, QueryFeatureSet, feature_job, global_match_job
+from usvc.relocalize.feature_job import Job, QueryFeatureSet, feature_job, global_match_job, runs_beside
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, feature_options, refine_by_features
 from usvc.relocalize.focal_verdicts import (
@@ -52,6 +52,7 @@ from usvc.relocalize.camera_checks import (
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
+from usvc.relocalize.query_cores import for_network, query_split
 from usvc.relocalize.query_evidence import QueryEvidence
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.relocalize.verified_matching import observation_descriptors
@@ -197,7 +198,7 @@ class Relocalizer(FocalVerdicts):
     @torch.inference_mode()
     def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
         """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
-        with autocast(self.precision, self.device):
+        with autocast(self.precision, self.device), for_network():
             out = self.regressor(normalise(gray01).to(self.device))[0].float()
         return out.permute(1, 2, 0).double().cpu().numpy()
 
@@ -215,6 +216,13 @@ class Relocalizer(FocalVerdicts):
 
         Every failed answer says why in ``rejected``; doubts that did not stop it (a principal
         point far off the centre, non-square pixels) are in ``warnings``."""
+        if self.landmarks is not None and runs_beside():  # side work on the worker thread: the threads are
+            with query_split(torch.get_num_threads()):  # split between the two sides (`query_cores`)
+                return self._localize(image, intrinsics, channels=channels, intrinsics_source=intrinsics_source)
+        return self._localize(image, intrinsics, channels=channels, intrinsics_source=intrinsics_source)
+
+    def _localize(self, image: np.ndarray | str | Path | Photo, intrinsics: Intrinsics | None, *,
+                  channels: str, intrinsics_source: str) -> PoseEstimate:
         if not isinstance(intrinsics_source, str):
             raise UsvcError(f"intrinsics_source must be a string, got {type(intrinsics_source).__name__}")
         if isinstance(image, (str, Path, Photo)):  # EXIF orientation applied, as for mapping images
