@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import functools
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 
 _LOCK = threading.Lock()
 _LOCAL = threading.local()  # .network: the network's threads in the query this thread runs, when split
 _STATE = {"libraries": 0, "torch": 0}  # queries inside each context now
-_SAVED: dict[str, object] = {}
+_UNDO: dict[str, Callable[[], None]] = {}  # how to put each back
 
 
 def split(threads: int) -> tuple[int, int]:
@@ -46,43 +46,49 @@ def _blas():
 
 
 @contextmanager
-def side_libraries(threads: int) -> Iterator[None]:
+def _shared(name: str, apply: Callable[[], Callable[[], None]]) -> Iterator[None]:
+    """`apply()` (which returns how to undo itself) when the first query enters `name`; the undo
+    when the last one leaves: overlapping queries set a pool once and put it back once."""
+    with _LOCK:
+        if _STATE[name] == 0:
+            _UNDO[name] = apply()
+        _STATE[name] += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _STATE[name] -= 1
+            if _STATE[name] == 0:
+                _UNDO.pop(name)()
+
+
+def side_libraries(threads: int) -> AbstractContextManager[None]:
     """OpenCV's and BLAS's pools at `threads` while any query is inside; then as they were."""
     import cv2
 
-    with _LOCK:
-        if _STATE["libraries"] == 0:
-            _SAVED["cv2"] = cv2.getNumThreads()
-            cv2.setNumThreads(threads)
-            _SAVED["blas"] = _blas().limit(limits=threads)  # puts the limits back when told
-        _STATE["libraries"] += 1
-    try:
-        yield
-    finally:
-        with _LOCK:
-            _STATE["libraries"] -= 1
-            if _STATE["libraries"] == 0:
-                cv2.setNumThreads(int(_SAVED.pop("cv2")))  # type: ignore[call-overload]
-                _SAVED.pop("blas").restore_original_limits()  # type: ignore[attr-defined]
+    def apply() -> Callable[[], None]:
+        before = cv2.getNumThreads()
+        cv2.setNumThreads(threads)
+        blas = _blas().limit(limits=threads)  # puts the limits back when told
+
+        def undo() -> None:
+            cv2.setNumThreads(before)
+            blas.restore_original_limits()
+        return undo
+
+    return _shared("libraries", apply)
 
 
-@contextmanager
-def network_threads(threads: int) -> Iterator[None]:
+def network_threads(threads: int) -> AbstractContextManager[None]:
     """torch's intra-op pool at `threads` while any query's network is inside; then as it was."""
     import torch
 
-    with _LOCK:
-        if _STATE["torch"] == 0:
-            _SAVED["torch"] = torch.get_num_threads()
-            torch.set_num_threads(threads)
-        _STATE["torch"] += 1
-    try:
-        yield
-    finally:
-        with _LOCK:
-            _STATE["torch"] -= 1
-            if _STATE["torch"] == 0:
-                torch.set_num_threads(int(_SAVED.pop("torch")))  # type: ignore[call-overload]
+    def apply() -> Callable[[], None]:
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        return lambda: torch.set_num_threads(before)
+
+    return _shared("torch", apply)
 
 
 @contextmanager
