@@ -88,3 +88,14 @@ def test_overlapping_queries_put_the_pools_back_once_the_last_one_leaves(pools):
     assert cv2.getNumThreads() == 1 and set(_blas_threads()) <= {1}  # the second query still runs
     second.__exit__(None, None, None)
     assert cv2.getNumThreads() == 3 and _blas_threads() == blas
+
+
+def test_a_batch_of_queries_sets_blas_with_torch_and_opencv(pools):
+    from usvc.relocalize.photo_batch import query_threads
+
+    torch.set_num_threads(2)
+    cv2.setNumThreads(3)
+    blas = _blas_threads()
+    with query_threads(1):
+        assert (torch.get_num_threads(), cv2.getNumThreads()) == (1, 1) and set(_blas_threads()) <= {1}
+    assert (torch.get_num_threads(), cv2.getNumThreads(), _blas_threads()) == (2, 3, blas)

@@ -5,7 +5,7 @@ One query keeps two cores only partly busy: the guided passes, the PnP and numpy
 run on one thread, and two threads make the network only 1.2-1.4x faster. Queries of different
 photos share nothing, so on a machine with many cores (or a GPU, which runs each network in a few
 milliseconds while the CPU does the rest) several in flight keep every core busy. Each query then
-runs with `threads // workers` threads of its own (torch's and OpenCV's pools, set for the batch)
+runs with `threads // workers` threads of its own (torch's, OpenCV's and BLAS's pools, set for the batch)
 and does its side work in place rather than on the per-process worker thread
 (`usvc.relocalize.feature_job.inline_jobs`), so the answers are bit for bit those of the photos
 localized one after the other with that many threads."""
@@ -21,6 +21,7 @@ from typing import TypeVar
 
 from usvc.core.errors import UsvcError
 from usvc.relocalize.feature_job import inline_jobs
+from usvc.relocalize.query_cores import network_threads, side_libraries
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -40,19 +41,10 @@ def check_workers(workers: object) -> int:
 
 @contextmanager
 def query_threads(n: int) -> Iterator[None]:
-    """torch's and OpenCV's thread pools at `n` for the duration, then as they were."""
-    import cv2
-    import torch
-
-    with _THREADS_LOCK:
-        before = torch.get_num_threads(), cv2.getNumThreads()
-        torch.set_num_threads(n)
-        cv2.setNumThreads(n)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(before[0])
-            cv2.setNumThreads(before[1])
+    """torch's, OpenCV's and BLAS's thread pools at `n` for the duration, then as they were (BLAS
+    too: OpenBLAS's idle threads spin, taking the cores the other queries need)."""
+    with _THREADS_LOCK, network_threads(n), side_libraries(n):
+        yield
 
 
 def in_order(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
