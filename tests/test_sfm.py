@@ -118,8 +118,9 @@ write_tracks(work / "tracks.h5", from_reconstruction(rec, work / "database.db"))
 def test_same_config_gives_identical_tracks(small_mini, tmp_path):
     """Two runs of SfM, each in a fresh process as every stage runs, give the same bits.
 
-    With threaded matching this failed now and then in full test runs (3,214-3,235 points of
-    3,235), never when run alone; matching now runs on one thread (usvc/sfm/reconstruction.py)."""
+    With COLMAP's threaded matcher this failed now and then in full test runs (3,214-3,235 points
+    of 3,235), never when run alone; the pairs are now cut into fixed chunks, one matcher thread
+    each (usvc/sfm/pair_matching.py)."""
     import subprocess
     import sys
 
@@ -207,3 +208,45 @@ def test_poses_of_other_images_are_reported(small_mini, tmp_path, caplog):
     wrong = pose_agreement(db, shuffled)
     assert wrong["median_pair_epipolar_px"] > 10.0 and wrong["pairs_disagreeing"] > wrong["pairs"] / 2
     assert warn_if_poses_disagree(wrong) and "another order than the images" in caplog.text
+
+
+def _match_rows(db_path) -> dict:
+    import sqlite3
+
+    con = sqlite3.connect(db_path)
+    try:
+        return {t: con.execute(f"SELECT * FROM {t} ORDER BY pair_id").fetchall()
+                for t in ("matches", "two_view_geometries")}
+    finally:
+        con.close()
+
+
+@pytest.mark.slow
+def test_matching_on_threads_gives_colmaps_one_thread_rows(small_mini, tmp_path):
+    """The pairs cut into chunks, each matched on a thread of its own into a copy of the database
+    and merged, give the rows of COLMAP's exhaustive matcher on one thread, byte for byte, for any
+    thread count and across COLMAP's blocks (a block of 5 images here: pairs across blocks are
+    oriented as COLMAP orients them, and a pair's orientation orders its matches)."""
+    import shutil
+
+    import pycolmap
+
+    from usvc.sfm.pair_matching import exhaustive_pairs, image_names, match_pairs
+    from usvc.sfm.reconstruction import extract, matching_kwargs
+
+    frames = read_scene_h5(small_mini / "scene.h5").split("train")[:12]
+    base = tmp_path / "base.db"
+    extract(frames, small_mini / IMAGE_DIR, base, OPTS, 2)
+    colmap = tmp_path / "colmap.db"
+    shutil.copyfile(base, colmap)
+    pairing = pycolmap.ExhaustivePairingOptions()
+    pairing.block_size = 5
+    pycolmap.match_exhaustive(colmap, pairing_options=pairing, **matching_kwargs(OPTS))
+    expected = _match_rows(colmap)
+    assert len(expected["matches"]) == 66
+    for threads in (1, 3):
+        db = tmp_path / f"threads{threads}.db"
+        shutil.copyfile(base, db)
+        match_pairs(db, exhaustive_pairs(image_names(db), 5), tmp_path, matching_kwargs(OPTS), threads)
+        assert _match_rows(db) == expected, f"{threads} threads"
+        assert not list(tmp_path.glob("matching_part*")), "the chunks' databases and pair lists are removed"

@@ -22,7 +22,7 @@ class SfmOptions:
     pose_pairs_per_image: int = 20  # pose-guided matching: nearest cameras by centre and viewing direction
     reconstruction: str = "auto"  # auto: triangulate with the given poses held fixed, incremental when the scene has none | triangulate | incremental
     min_points: int = 100  # fewer triangulated points than this is a degenerate scene
-    num_threads: int = -1  # COLMAP feature-extraction threads (matching uses one, for reproducible runs); -1 = the top-level threads setting
+    num_threads: int = -1  # COLMAP threads for feature extraction and matching (the same matches for any count); -1 = the top-level threads setting
     seed: int = 0  # COLMAP's RANSAC seed, apart from the mapping seed so mapping seeds reuse the SfM
     verbose: bool = False  # show COLMAP's own per-image log (quiet unless asked)
 

@@ -83,7 +83,7 @@ def register_query(db: pycolmap.Database, rec: pycolmap.Reconstruction, query_id
 def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions,
                threads: int) -> tuple[Scene, dict[str, str]]:
     """Posed copy of ``scene`` (images under ``image_dir`` by frame name) and {name: why not posed};
-    features are extracted on `threads` threads (see reconstruction.colmap_threads)."""
+    features are extracted and matched on `threads` threads (see reconstruction.colmap_threads)."""
     frames = scene.frames
     mapping = [f for f in frames if f.split == "train"]
     if len(mapping) < MIN_MAPPING_IMAGES:
@@ -91,7 +91,7 @@ def pose_scene(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions,
                        f"{len(mapping)}: COLMAP keeps only points seen in 3 or more photos")
     db_path = work_dir / "database.db"
     extract(frames, image_dir, db_path, opts, threads)
-    match(frames, db_path, work_dir, opts, has_poses=False)
+    match(frames, db_path, work_dir, opts, has_poses=False, threads=threads)
     po = pipeline_options(opts)
     po.image_names = [f.name for f in mapping]  # queries never enter the reconstruction
     model_dir = work_dir / "posing"

@@ -7,6 +7,7 @@ without poses a full incremental reconstruction runs instead.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -17,6 +18,7 @@ import pycolmap
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame
 from usvc.sfm.options import SfmOptions
+from usvc.sfm.pair_matching import exhaustive_pairs, image_names, match_pairs
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
 
 log = logging.getLogger(__name__)
@@ -29,9 +31,9 @@ MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
 
 
 def colmap_threads(opts: SfmOptions, threads: int) -> int:
-    """Feature extraction threads: sfm.num_threads when set (> 0), else `threads`, the caller's
-    thread count (-1, COLMAP's default: all cores). Matching always runs on one thread (see
-    matching_kwargs)."""
+    """Feature extraction and matching threads: sfm.num_threads when set (> 0), else `threads`, the
+    caller's thread count (-1, COLMAP's default: all cores). Matching splits its pairs among them
+    (pair_matching), with the bits of one thread."""
     return opts.num_threads if opts.num_threads > 0 else threads
 
 
@@ -116,9 +118,9 @@ def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
 def matching_kwargs(opts: SfmOptions) -> dict:
     """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU)."""
     mo = pycolmap.FeatureMatchingOptions()
-    # One thread: threaded matching and verification gave a few points more or fewer between
-    # identical runs (3,214-3,235 of 3,235 on a 24-image scene, rarely). Threads gain little
-    # here (office: 5.7 s against 7.2 s); extraction, per image, keeps its threads.
+    # One matcher thread: COLMAP's threads take pairs as they come, and threaded matching gave a
+    # few points more or fewer between identical runs (3,214-3,235 of 3,235 on a 24-image
+    # scene, rarely). match() runs one such matcher per thread on its own chunk of the pairs.
     mo.num_threads = 1
     mo.use_gpu = False
     vo = pycolmap.TwoViewGeometryOptions()
@@ -126,8 +128,11 @@ def matching_kwargs(opts: SfmOptions) -> dict:
     return dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
 
 
-def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool) -> str:
-    """Match with the configured strategy; `auto` is exhaustive for small scenes."""
+def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool,
+          threads: int = 1) -> str:
+    """Match with the configured strategy; `auto` is exhaustive for small scenes. Exhaustive and
+    pose-guided pairs are matched on `threads` threads (see colmap_threads) with the bits of one
+    (pair_matching); sequential matching runs on one."""
     mode = opts.matching
     if mode == "auto":
         if len(frames) <= opts.exhaustive_max_images:
@@ -137,18 +142,16 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
     if mode == "poses" and not has_poses:
         raise SfmError("sfm.matching=poses needs a scene with poses")
     common = matching_kwargs(opts)
+    count = colmap_threads(opts, threads)
+    count = count if count > 0 else (os.cpu_count() or 1)
     if mode == "exhaustive":
-        pycolmap.match_exhaustive(db_path, **common)
+        match_pairs(db_path, exhaustive_pairs(image_names(db_path)), work_dir, common, count)
     elif mode == "sequential":
         po = pycolmap.SequentialPairingOptions()
         po.overlap = opts.sequential_overlap
         pycolmap.match_sequential(db_path, pairing_options=po, **common)
     else:
-        pairs_file = work_dir / "pairs.txt"
-        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pose_pairs(frames, opts.pose_pairs_per_image)))
-        po = pycolmap.ImportedPairingOptions()
-        po.match_list_path = pairs_file
-        pycolmap.match_image_pairs(db_path, pairing_options=po, **common)
+        match_pairs(db_path, pose_pairs(frames, opts.pose_pairs_per_image), work_dir, common, count)
     return mode
 
 
@@ -214,7 +217,7 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
     extract(frames, image_dir, db_path, opts, threads)
     timings["extract_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    strategy = match(frames, db_path, work_dir, opts, has_poses)
+    strategy = match(frames, db_path, work_dir, opts, has_poses, threads)
     timings["match_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     mode = opts.reconstruction

@@ -74,7 +74,9 @@ def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer
         # The rate and beta1 (the one-cycle schedule moves both) live on the device and are refilled
         # every step: a step reads nothing from the host, so it can be replayed as a CUDA graph.
         return GraphAdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
-    return torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
+    # Fused: one kernel over each parameter instead of a dozen tensor ops (the update was ~8 % of a
+    # CPU step); elementwise, so the same bits for any thread count.
+    return torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay, fused=True)
 
 
 def schedule_values(opts: TrainOptions) -> tuple[list[float], list[float]]:
