@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -90,11 +92,36 @@ def test_features_are_the_encoders_at_the_cell(scene, encoder):
 
     gray = luma01(cv2.imread(str(frame.image_path)), rgb=False)
     view = warp_view(gray, frame.camera.K, frame.R, frame.t, short_side=240)
-    with torch.inference_mode():
-        out = encoder(normalise(view.image))[0].numpy()
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # the buffer's passes run on one thread each on a CPU (encoder_workers)
+    try:
+        with torch.inference_mode():
+            out = encoder(normalise(view.image))[0].numpy()
+    finally:
+        torch.set_num_threads(before)
     cols = ((buf.pixels[:, 0] - 4.5) / 8).astype(int)
     rows = ((buf.pixels[:, 1] - 4.5) / 8).astype(int)
     np.testing.assert_allclose(buf.features.astype(np.float32), out[:, rows, cols].T.astype(np.float16), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_buffer_is_the_same_for_any_thread_count(scene, encoder, threads):
+    """Views are encoded side by side, one torch thread each, in the views' order: the buffer's bits
+    do not depend on the thread count, and torch's count is put back afterwards."""
+    frames = read_scene_h5(scene / "scene.h5").split("train")
+    opts = replace(OPTS, size=1200, samples_per_image=150, precision="fp32")
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        reference = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
+        torch.set_num_threads(threads)
+        buf = fill_buffer(frames, encoder, opts, SHORT_SIDE, seed=SEED)
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)
+    assert len(buf.view_image) == 8
+    for name in ("features", "pixels", "view_index", "view_image", "view_R", "view_t", "view_K"):
+        np.testing.assert_array_equal(getattr(buf, name), getattr(reference, name), err_msg=name)
 
 
 def test_distorted_camera_is_rejected(encoder, tmp_path):
