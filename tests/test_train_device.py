@@ -182,7 +182,8 @@ def test_each_step_gets_the_rate_and_beta1_torchs_scheduler_gives_it(schedule, o
     opts = _opts(schedule=schedule, optimizer=optimizer, iterations=50, warmup_fraction=0.3)
     lrs, beta1s = trainer.schedule_values(opts)
     param = torch.nn.Parameter(torch.ones(3))
-    optim = trainer._optimizer(opts, [param], "cpu")
+    optim = (torch.optim.AdamW([param], lr=opts.lr, weight_decay=opts.weight_decay) if optimizer == "adamw"
+             else trainer._optimizer(opts, [param], "cpu"))
     sched = (torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=50, pct_start=0.3)
              if schedule == "one_cycle" else torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0))
     for it in range(50):

@@ -24,13 +24,15 @@ from usvc.core.geometry import camera_centers
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
+from usvc.train import fused_adamw
 from usvc.train.adabelief import AdaBelief
 from usvc.train.bundle_loss import bundle_loss
+from usvc.train.fused_adamw import FusedAdamW
 from usvc.train.graph_adamw import GraphAdamW
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
 from usvc.train.reprojection_loss import project_samples, reprojection_loss
-from usvc.train.schedule import circle_threshold
+from usvc.train.schedule import circle_threshold, rate_and_beta1
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +69,7 @@ def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: floa
             "within_10px": float((err <= 10.0).mean())}
 
 
-def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer | GraphAdamW:
+def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer | GraphAdamW | FusedAdamW:
     if opts.optimizer == "adabelief":
         return AdaBelief(params, lr=opts.lr, weight_decay=opts.weight_decay)
     if device.startswith("cuda"):
@@ -75,33 +77,22 @@ def _optimizer(opts: TrainOptions, params, device: str) -> torch.optim.Optimizer
         # every step: a step reads nothing from the host, so it can be replayed as a CUDA graph.
         return GraphAdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
     # Fused: one kernel over each parameter instead of a dozen tensor ops (the update was ~8 % of a
-    # CPU step); elementwise, so the same bits for any thread count.
+    # CPU step); elementwise, so the same bits for any thread count. Torch's own kernel, called
+    # without torch.optim, which would load torch's compiler first (seconds of every start).
+    if fused_adamw.available():
+        return FusedAdamW(params, lr=opts.lr, weight_decay=opts.weight_decay)
     return torch.optim.AdamW(params, lr=opts.lr, weight_decay=opts.weight_decay, fused=True)
 
 
 def schedule_values(opts: TrainOptions) -> tuple[list[float], list[float]]:
     """The learning rate and beta1 of every step, as torch's scheduler sets them (one_cycle:
     OneCycleLR, which also cycles beta1 between 0.95 and 0.85 against the rate; constant: lr and
-    0.9), worked out once on a stand-in parameter so that the loop only sets two numbers a step."""
-    stand_in = torch.nn.Parameter(torch.zeros(1))
-    optim = torch.optim.AdamW([stand_in], lr=opts.lr, betas=(0.9, 0.999))  # both optimizers' starting betas
-    if opts.schedule == "one_cycle":
-        sched: Any = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=opts.iterations,
-                                                         pct_start=opts.warmup_fraction)
-    else:
-        sched = torch.optim.lr_scheduler.LambdaLR(optim, lambda _: 1.0)
-    lrs, beta1s = [], []
-    group = optim.param_groups[0]
-    for _ in range(opts.iterations):
-        lrs.append(float(group["lr"]))
-        beta1s.append(float(group["betas"][0]))
-        optim.step()  # no gradient: nothing changes but the scheduler's order check
-        sched.step()
-    return lrs, beta1s
+    0.9), worked out once (`usvc.train.schedule`) so that the loop only sets two numbers a step."""
+    return rate_and_beta1(opts.schedule, opts.lr, opts.iterations, opts.warmup_fraction)
 
 
-def _set_schedule(optim: torch.optim.Optimizer | GraphAdamW, lr: float, beta1: float) -> None:
-    if isinstance(optim, GraphAdamW):
+def _set_schedule(optim: torch.optim.Optimizer | GraphAdamW | FusedAdamW, lr: float, beta1: float) -> None:
+    if isinstance(optim, (GraphAdamW, FusedAdamW)):
         optim.set_schedule(lr, beta1)
         return
     for group in optim.param_groups:
