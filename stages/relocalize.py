@@ -2,6 +2,7 @@
 
 from usvc.model.options import ModelOptions
 from usvc.pipeline.stage import Stage
+from usvc.pipeline.threads import query_workers
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.run import Inputs, run
 
@@ -12,7 +13,8 @@ stage = Stage("relocalize", torch_device=True, model=ModelOptions, relocalize=Re
 def main(cfg, paths, out):
     inputs = Inputs(scene=paths.scene_file, map=paths.map_file, landmarks=paths.landmarks_file)
     return run(inputs, out, stage.options(cfg, "relocalize"), encoder_weights=stage.options(cfg, "model").encoder_weights,
-               seed=cfg.seed, scene=cfg.scene.name, device=stage.device, workers=cfg.query_workers)
+               seed=cfg.seed, scene=cfg.scene.name, device=stage.device,
+               workers=query_workers(cfg.query_workers, stage.threads))
 
 
 if __name__ == "__main__":

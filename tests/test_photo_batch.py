@@ -140,13 +140,22 @@ def test_cli_workers_give_the_same_records_in_the_same_order(tmp_path: Path):
     assert proc.stderr.strip().splitlines()[-1].endswith("--workers 0: must be a whole number >= 1")
 
 
-@pytest.mark.parametrize("value", ["0", "-2"])
+@pytest.mark.parametrize("value", ["0", "-2", "many"])
 def test_query_workers_below_one_fail_at_once(value):
     from usvc.pipeline.config import ConfigError, compose_for_script
 
-    with pytest.raises(ConfigError, match=f"query_workers={value} must be >= 1"):
+    with pytest.raises(ConfigError, match=f"query_workers='{value}' must be 'auto' or a positive number"):
         compose_for_script("mini", [f"query_workers={value}"])
-    assert compose_for_script("mini", ["query_workers=3"]).query_workers == 3
+    assert compose_for_script("mini", ["query_workers=3"]).query_workers == "3"
+
+
+def test_query_workers_auto_is_one_photo_per_thread():
+    from usvc.pipeline.config import compose_for_script
+    from usvc.pipeline.threads import query_workers
+
+    assert compose_for_script("mini", []).query_workers == "auto"
+    assert [query_workers("auto", n) for n in (1, 2, 16)] == [1, 2, 16]
+    assert query_workers("3", 16) == query_workers(3, 1) == 3
 
 
 def test_the_relocalize_stage_localizes_its_frames_in_order_with_workers(tmp_path: Path, synthetic_query,

@@ -33,7 +33,7 @@ class Config:
     seed: int = 0  # mapping seed: buffer sampling, head initialisation, RANSAC at query time
     threads: str = "auto"  # torch/OpenCV/COLMAP/BLAS threads: auto (cores / jobs side by side) or a number
     device: str = "auto"  # torch's device for the stages that run it: auto (CUDA where torch sees one) | cpu | cuda | cuda:N
-    query_workers: int = 1  # photos the relocalize stage localizes at a time, each with threads // query_workers threads
+    query_workers: str = "auto"  # photos the relocalize stage localizes at a time, each with threads // query_workers threads: auto (= threads, one each) or a number
     method: str = "multiview"  # set by the method group: single | multiview | multiview_gs
     data_dir: str = "data"  # where the artifacts go: <data_dir>/<scene>/<stage>
     results_dir: str = "results"  # where the metrics and plots go: <results_dir>/<scene>/
@@ -157,8 +157,12 @@ def validate(cfg: Any, schemas: dict[str, type] | None = None) -> None:
         resolve(cfg.threads)
     except ValueError as err:
         raise ConfigError(f"config key {err}") from None
-    if cfg.query_workers < 1:
-        raise ConfigError(f"config key query_workers={cfg.query_workers!r} must be >= 1 (photos localized at a time)")
+    try:
+        from usvc.pipeline.threads import query_workers
+
+        query_workers(cfg.query_workers, 1)
+    except ValueError as err:
+        raise ConfigError(f"config key {err}") from None
     from usvc.core.device import device_problem
 
     if device_problem(cfg.device):

@@ -146,6 +146,18 @@ def resolve(setting: str | int) -> int:
     raise ValueError(f"threads={setting!r} must be 'auto' or a positive number")
 
 
+def query_workers(setting: str | int, threads: int) -> int:
+    """Photos localized at a time: `auto` -> `threads` (one thread each: the relocalize stage's
+    photos keep the cores busy, where one photo's own work leaves some idle); a positive number ->
+    itself."""
+    text = str(setting).strip().lower()
+    if text == "auto":
+        return max(1, threads)
+    if text.isdigit() and int(text) > 0:
+        return int(text)
+    raise ValueError(f"query_workers={setting!r} must be 'auto' or a positive number (photos localized at a time)")
+
+
 def setting_from_argv(argv: list[str], default: str = "auto") -> str:
     """The `threads=` override of a Hydra command line, before Hydra has composed anything."""
     for arg in argv:
