@@ -80,3 +80,18 @@ def test_training_loads_no_torch_compiler():
             "print('torch._dynamo' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_deterministic_kernels_for_cuda_training_load_no_torch_compiler():
+    """Training on CUDA turns torch's deterministic kernels on (and back off) without importing
+    torch's compiler, which torch.use_deterministic_algorithms does (seconds of a GPU start)."""
+    code = ("import sys, torch\n"
+            "from usvc.train import trainer\n"
+            "assert not torch.are_deterministic_algorithms_enabled()\n"
+            "with trainer._deterministic('cuda'):\n"
+            "    on = torch.are_deterministic_algorithms_enabled()\n"
+            "    warn = torch.is_deterministic_algorithms_warn_only_enabled()\n"
+            "print(on, warn, torch.are_deterministic_algorithms_enabled(),\n"
+            "      'torch._dynamo' in sys.modules or 'torch._inductor' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["True", "True", "False", "False"]

@@ -185,11 +185,22 @@ def _deterministic(device: str) -> Iterator[None]:
         yield
         return
     before, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    _set_deterministic(True, warn_only=True)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(before, warn_only=warn_only)
+        _set_deterministic(before, warn_only=warn_only)
+
+
+def _set_deterministic(mode: bool, warn_only: bool) -> None:
+    """torch.use_deterministic_algorithms for eager kernels, the only ones training runs: torch's
+    own function also sets its compiler's flag, and importing the compiler for it (torch._inductor,
+    torch._dynamo) takes seconds of every training start on a GPU machine."""
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        setter(mode, warn_only=warn_only)
 
 
 # Columns of the per-step statistics kept on the device: total loss, pixel loss, valid fraction,
