@@ -88,9 +88,13 @@ def head_throughput(data: Path, scene: str, device: str, overrides: list[str], b
 
 
 def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env: dict[str, str],
-                  batch_sizes: list[int], head_iterations: int, first: str = STAGES[0], repeat: bool = True) -> dict:
+                  batch_sizes: list[int], head_iterations: int, first: str = STAGES[0], repeat: bool = True,
+                  setting: str | None = None) -> dict:
+    """`device`: where torch runs (resolved); `setting`: the device setting the stages get, as a
+    user would give it (default: `device`; `auto` as `dvc repro` runs with the default config)."""
     data, results = work / "data", work / "results"
-    common = [f"device={device}", f"data_dir={data}", f"results_dir={results}", f"hydra.run.dir={work / 'logs'}"]
+    common = [f"device={setting or device}", f"data_dir={data}", f"results_dir={results}",
+              f"hydra.run.dir={work / 'logs'}"]
     if scene == "mini":
         common.append(f"scene.path={data / 'raw' / scene}")
     stages = [s for s in STAGES[STAGES.index(first):] if s != "generate" or scene == "mini"]
@@ -139,7 +143,9 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (every torch stage)")
+    parser.add_argument("--device", default="auto",
+                        help="auto | cpu | cuda | cuda:N, given to every stage as is (auto: as dvc repro runs "
+                             "with the default config); the report is named for the device it resolves to")
     parser.add_argument("--scene", action="append", help="scene to run (repeatable; default: mini)")
     parser.add_argument("--work", type=Path, help="work folder (default: a temporary one, removed afterwards)")
     parser.add_argument("--batch-sizes", type=int, nargs="*", default=[2048, 8192, 32768],
@@ -166,7 +172,7 @@ def main() -> None:
             work = (args.work or Path(tmp)) / scene
             work.mkdir(parents=True, exist_ok=True)
             result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations,
-                                   args.first, not args.no_repeat)
+                                   args.first, not args.no_repeat, setting=args.device)
             reports.append(write_report(report_name(device, scene), result))
             print(json.dumps({k: result[k] for k in ("scene", "device_name", "total_seconds", "same_map_twice",
                                                       "metrics")}, indent=1))

@@ -63,3 +63,22 @@ def test_query_photos_at_a_size_keep_square_pixels(monkeypatch):
     assert after == pytest.approx(expected, abs=1e-6)
     wide, (wfx, wfy, _, _) = at_size(np.zeros((360, 640, 3), np.uint8), (500.0, 500.0, 320.0, 180.0), (640, 480))
     assert wide.shape[:2] == (480, 640) and wfx == pytest.approx(wfy, rel=1e-3)  # 16:9 cropped to 4:3
+
+
+def test_device_pipeline_gives_the_stages_the_device_setting_as_asked(tmp_path, monkeypatch):
+    """`--device auto` runs the stages as `dvc repro` does with the default config (device=auto: a
+    skipped 3DGS stage then loads no torch), not with the device it resolved to."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import device_pipeline
+
+    seen = []
+
+    def run_stage(stage, scene, overrides, env):
+        seen.append((stage, overrides))
+        raise RuntimeError("stop after the first stage")
+
+    monkeypatch.setattr(device_pipeline, "run_stage", run_stage)
+    for setting, expected in ((None, "device=cpu"), ("auto", "device=auto")):
+        with pytest.raises(RuntimeError, match="first stage"):
+            device_pipeline.measure_scene("mini", "cpu", tmp_path, [], {}, [], 1, setting=setting)
+        assert seen[-1][0] == "generate" and expected in seen[-1][1]
