@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from conftest import shared_scene
 
 from usvc.core.errors import SfmError
-from usvc.core.scene import Camera, Frame, Scene
+from usvc.core.scene import Camera, Frame
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.prepare.importers import load_scene
 from usvc.prepare.working_images import prepare_scene
@@ -223,7 +225,7 @@ def _match_rows(db_path) -> dict:
 
 @pytest.mark.slow
 def test_matching_on_threads_gives_colmaps_one_thread_rows(small_mini, tmp_path):
-    """The pairs cut into chunks, each matched on a thread of its own into a copy of the database
+    """The pairs cut into chunks, each matched in a process of its own into a copy of the database
     and merged, give the rows of COLMAP's exhaustive matcher on one thread, byte for byte, for any
     thread count and across COLMAP's blocks (a block of 5 images here: pairs across blocks are
     oriented as COLMAP orients them, and a pair's orientation orders its matches)."""
@@ -247,6 +249,21 @@ def test_matching_on_threads_gives_colmaps_one_thread_rows(small_mini, tmp_path)
     for threads in (1, 3):
         db = tmp_path / f"threads{threads}.db"
         shutil.copyfile(base, db)
-        match_pairs(db, exhaustive_pairs(image_names(db), 5), tmp_path, matching_kwargs(OPTS), threads)
+        match_pairs(db, exhaustive_pairs(image_names(db), 5), tmp_path, OPTS.seed, threads)
         assert _match_rows(db) == expected, f"{threads} threads"
         assert not list(tmp_path.glob("matching_part*")), "the chunks' databases and pair lists are removed"
+    # The matching processes run this checkout's code, whatever package the working directory holds.
+    decoy = tmp_path / "decoy" / "usvc" / "sfm"
+    decoy.mkdir(parents=True)
+    for folder in (decoy.parent, decoy):
+        (folder / "__init__.py").write_text("")
+    (decoy / "pair_matching.py").write_text("def _main(argv):\n    pass\n")
+    db = tmp_path / "from_elsewhere.db"
+    shutil.copyfile(base, db)
+    cwd = os.getcwd()
+    os.chdir(decoy.parents[1])
+    try:
+        match_pairs(db, exhaustive_pairs(image_names(db), 5), tmp_path, OPTS.seed, 3)
+    finally:
+        os.chdir(cwd)
+    assert _match_rows(db) == expected

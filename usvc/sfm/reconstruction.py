@@ -18,7 +18,7 @@ import pycolmap
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame
 from usvc.sfm.options import SfmOptions
-from usvc.sfm.pair_matching import exhaustive_pairs, image_names, match_pairs
+from usvc.sfm.pair_matching import colmap_matching, exhaustive_pairs, image_names, match_pairs
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
 
 log = logging.getLogger(__name__)
@@ -116,16 +116,9 @@ def pose_pairs(frames: list[Frame], k: int) -> list[tuple[str, str]]:
 
 
 def matching_kwargs(opts: SfmOptions) -> dict:
-    """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU)."""
-    mo = pycolmap.FeatureMatchingOptions()
-    # One matcher thread: COLMAP's threads take pairs as they come, and threaded matching gave a
-    # few points more or fewer between identical runs (3,214-3,235 of 3,235 on a 24-image
-    # scene, rarely). match() runs one such matcher per thread on its own chunk of the pairs.
-    mo.num_threads = 1
-    mo.use_gpu = False
-    vo = pycolmap.TwoViewGeometryOptions()
-    vo.ransac.random_seed = opts.seed  # COLMAP's default (-1) reseeds every run
-    return dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    """Matcher and seeded geometric-verification options for pycolmap's match_* calls (CPU, one
+    matcher thread; see pair_matching.colmap_matching)."""
+    return colmap_matching(opts.seed)
 
 
 def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool,
@@ -145,13 +138,13 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
     count = colmap_threads(opts, threads)
     count = count if count > 0 else (os.cpu_count() or 1)
     if mode == "exhaustive":
-        match_pairs(db_path, exhaustive_pairs(image_names(db_path)), work_dir, common, count)
+        match_pairs(db_path, exhaustive_pairs(image_names(db_path)), work_dir, opts.seed, count)
     elif mode == "sequential":
         po = pycolmap.SequentialPairingOptions()
         po.overlap = opts.sequential_overlap
         pycolmap.match_sequential(db_path, pairing_options=po, **common)
     else:
-        match_pairs(db_path, pose_pairs(frames, opts.pose_pairs_per_image), work_dir, common, count)
+        match_pairs(db_path, pose_pairs(frames, opts.pose_pairs_per_image), work_dir, opts.seed, count)
     return mode
 
 

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import torch
 
+from usvc.train.graph_adamw import GraphAdamW
+
 
 def available() -> bool:
     """Whether this torch has the fused AdamW kernel (the trainer falls back to torch.optim's
@@ -40,12 +42,7 @@ class FusedAdamW:
         """This step's rate and beta1."""
         self.lr, self.beta1 = float(lr), float(beta1)
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        for p in self.params:
-            if set_to_none:
-                p.grad = None
-            elif p.grad is not None:
-                p.grad.zero_()
+    zero_grad = GraphAdamW.zero_grad  # every parameter's gradient to None (or zeros)
 
     @torch.no_grad()
     def step(self) -> None:
