@@ -27,10 +27,15 @@ from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import relocalizer as relocalizer_module
-from usvc.relocalize.pnp import project_points
+from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.relocalizer import Relocalizer, RelocalizeOptions
-from usvc.relocalize.verified_matching import MIN_PAIR_INLIERS, mutual_ratio_matches, verified_matches
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
+from usvc.relocalize.verified_matching import (
+    MIN_PAIR_INLIERS,
+    mutual_ratio_matches,
+    pose_checked_matches,
+    verified_matches,
+)
 from usvc.sfm.tracks_file import Tracks
 
 pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
@@ -313,3 +318,62 @@ def test_the_maps_focal_estimate_is_found_only_where_its_verdict_is_asked_for(tm
                         lambda *a, **k: relocalizer_module.FOCAL_UNOBSERVABLE)
     right = reloc.localize(photo(), CAM)
     assert right.success and len(calls) == 1, right.rejected
+
+
+def test_pose_checked_matches_are_the_per_image_matches_the_pose_explains():
+    """SIFT + PnP's per-image matches around a known pose: only images that see the given landmarks
+    are compared, every kept match lies within the threshold of its landmark's projection, and a
+    keypoint matched in several images counts once per image."""
+    landmarks, feats = scene()
+    every = np.arange(len(landmarks))
+    found = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every, 2.0)
+    assert found.images == len(MAPPING) and found.verified_pairs == len(MAPPING)
+    uv, _ = project_points(CAM, found.xyz, R_TRUE, T_TRUE)
+    assert np.all(np.linalg.norm(uv - found.uv, axis=1) <= 2.0)
+    assert np.all(found.keypoint < N_POINTS) and len(found) >= 0.8 * N_POINTS * 2  # several images per point
+    assert np.array_equal(found.landmark[found.keypoint == found.keypoint[0]],
+                          np.full(int((found.keypoint == found.keypoint[0]).sum()), found.landmark[0]))
+    # landmarks seen by no mapping image in numbers: nothing is compared
+    assert pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every[:MIN_PAIR_INLIERS - 1], 2.0).images == 0
+    # a pose 20 px off explains none of the right matches within 2 px
+    far = T_TRUE + np.array([20.0 * T_TRUE[2] / CAM.focal[0], 0.0, 0.0])
+    assert len(pose_checked_matches(landmarks, feats, CAM, R_TRUE, far, every, 2.0)) == 0
+
+
+def test_refinement_on_inliers_recovers_the_pose_and_fails_without_inliers():
+    landmarks, feats = scene()
+    xyz = landmarks.xyz
+    uv, _ = project_points(CAM, xyz, R_TRUE, T_TRUE)
+    rng = np.random.default_rng(2)
+    noisy = np.concatenate([uv + rng.normal(0, 0.2, uv.shape), rng.uniform([0, 0], [CAM.width, CAM.height], (80, 2))])
+    points = np.concatenate([xyz, xyz[:80]])
+    R0 = Rotation.from_rotvec([0.0, 0.003, 0.0]).as_matrix() @ R_TRUE  # about 0.17 deg off
+    res = refine_on_inliers(noisy, points, CAM, R0, T_TRUE + 0.002, 4.0)
+    ransac = solve_pnp(noisy, points, CAM, 4.0, 0, 10, "pycolmap")  # the noise's own limit: ~0.06 deg here
+    assert res.success and errors(res.R, res.t)[0] < errors(ransac.R, ransac.t)[0] + 0.005 < errors(R0, T_TRUE)[0] / 2
+    assert res.inlier_mask[:len(xyz)].mean() > 0.95 and res.inlier_mask[len(xyz):].mean() < 0.2
+    far = refine_on_inliers(noisy, points, CAM, R_TRUE, T_TRUE + np.array([1.0, 0.0, 0.0]), 4.0)
+    assert not far.success and np.isnan(far.R).all()
+
+
+@pytest.mark.parametrize("learned", ["right", "wrong"])
+def test_features_final_images_ends_with_the_baselines_evidence(tmp_path: Path, monkeypatch, learned: str):
+    """relocalize.features_final=images: the answer the guided or global path found gets one more
+    pass with SIFT + PnP's per-image matches around it, and says so; the default does not run it;
+    SIFT + PnP's own path (the fallback) is that evidence already."""
+    landmarks, feats = scene()
+    path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE) if learned == "right" else WRONG)
+    plain = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
+    final = Relocalizer(path, tmp_path / "encoder.pt", RelocalizeOptions(features_final="images")).localize(photo(), CAM)
+    kinds = [p["kind"] for p in final.to_json()["refinement"]["passes"]]
+    assert "images" not in [p["kind"] for p in plain.to_json()["refinement"]["passes"]]
+    assert final.success and final.refine_path == plain.refine_path, final.rejected
+    if plain.refine_path == "verified":
+        assert "images" not in kinds
+    else:
+        assert kinds[-1] == "images"
+        record = final.to_json()["refinement"]["passes"][-1]
+        assert record["verified_pairs"] == len(MAPPING) and record["inliers"] >= 0.8 * N_POINTS
+    rot, trans = errors(final.R, final.t)
+    assert rot < 0.2 and trans < 0.01
+    assert RelocalizeOptions(features_final="ransac").problems()[0].startswith("features_final=")

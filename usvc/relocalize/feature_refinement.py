@@ -29,9 +29,9 @@ from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import project_points, solve_pnp
+from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import VerifiedMatches
+from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,7 @@ class FeatureMatchOptions:
     min_inliers: int  # fewer PnP inliers than this: the pass failed
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
+    final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (`images_pass`)
 
 
 def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None) -> FeatureMatchOptions:
@@ -64,7 +65,8 @@ def feature_options(options: RelocalizeOptions, short_side: int, device: str | N
     return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
-                               view_margin_deg=options.features_view_margin_deg, device=device)
+                               view_margin_deg=options.features_view_margin_deg, device=device,
+                               final=options.features_final)
 
 
 @dataclass
@@ -82,6 +84,7 @@ class FeatureResult:
     passes: list[dict] = field(default_factory=list)  # per pass: kind, radius, matches, inliers
     match_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the last accepted pass's matches
     match_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    match_landmark: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # their landmark rows
     why: str = ""  # why no pose, when there is none
     tried: list[dict] = field(default_factory=list)  # per hypothesis tried: its path and its support
     verified: dict | None = None  # what SIFT + PnP's matching took, when it ran (VerifiedMatches.record)
@@ -236,13 +239,14 @@ def _guided_pass(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures
     res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
     record = {"kind": "guided", "radius_px": radius, "candidates": int(len(idx)), "matches": int(len(li)),
               "inliers": 0 if res is None else res.num_inliers}
-    return res, record, feats.uv[ki], landmarks.xyz[idx[li]]
+    return res, record, feats.uv[ki], idx[li]
 
 
-def _accept(out: FeatureResult, res, uv: np.ndarray, xyz: np.ndarray, inliers: int | None = None) -> None:
+def _accept(out: FeatureResult, res, uv: np.ndarray, landmarks: Landmarks, rows: np.ndarray,
+            inliers: int | None = None) -> None:
     out.R, out.t = np.asarray(res.R, np.float64).copy(), np.asarray(res.t, np.float64).copy()
     out.inliers, out.matches = res.num_inliers if inliers is None else inliers, len(uv)
-    out.match_uv, out.match_xyz = uv, xyz
+    out.match_uv, out.match_xyz, out.match_landmark = uv, landmarks.xyz[rows], rows
 
 
 def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
@@ -250,30 +254,30 @@ def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feat
     """Guided passes from `out`'s pose at the given radii, while they keep most of the support."""
     for radius in radii:
         assert out.R is not None and out.t is not None
-        res, record, uv, xyz = _guided_pass(landmarks, lm_desc, feats, camera, out.R, out.t, radius, opts, seed)
+        res, record, uv, rows = _guided_pass(landmarks, lm_desc, feats, camera, out.R, out.t, radius, opts, seed)
         out.passes.append(record)
         if res is None or res.num_inliers < out.inliers // 2:
             break  # keep the last pose: a tighter radius that loses most support is not better
-        _accept(out, res, uv, xyz)
+        _accept(out, res, uv, landmarks, rows)
 
 
 def from_prior(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R0: np.ndarray,
                t0: np.ndarray, opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
     """Guided passes from the learned pose (R0, t0): the first at the widest radius, then tighter."""
     out = FeatureResult(None, None)
-    res, record, uv, xyz = _guided_pass(landmarks, lm_desc, feats, camera, R0, t0, opts.radii_px[0], opts, seed)
+    res, record, uv, rows = _guided_pass(landmarks, lm_desc, feats, camera, R0, t0, opts.radii_px[0], opts, seed)
     out.passes.append(record)
     if res is None:
         out.why = (f"features: the learned pose's guided pass found {record['matches']} matches, no pose with "
                    f"{opts.min_inliers} inliers")
         return out
     out.path = "guided"
-    _accept(out, res, uv, xyz)
+    _accept(out, res, uv, landmarks, rows)
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
     return out
 
 
-def _from_correspondences(path: str, uv: np.ndarray, xyz: np.ndarray, record: dict, landmarks: Landmarks,
+def _from_correspondences(path: str, uv: np.ndarray, rows: np.ndarray, record: dict, landmarks: Landmarks,
                           lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
                           seed: int, keypoint: np.ndarray | None = None, tighten: bool = True) -> FeatureResult:
     """PnP on unguided correspondences (`path` names them), then guided passes to tighten (unless
@@ -281,7 +285,7 @@ def _from_correspondences(path: str, uv: np.ndarray, xyz: np.ndarray, record: di
     correspondence, where one keypoint may give several), the distinct keypoints among the inliers,
     as a guided pass counts."""
     out = FeatureResult(None, None)
-    res = _pnp(uv, xyz, camera, opts, seed)
+    res = _pnp(uv, landmarks.xyz[rows], camera, opts, seed)
     support = None if res is None or keypoint is None else int(len(np.unique(keypoint[res.inlier_mask])))
     if support is not None and support < opts.min_inliers:
         res = None
@@ -291,7 +295,7 @@ def _from_correspondences(path: str, uv: np.ndarray, xyz: np.ndarray, record: di
                    f"within {opts.max_error_px:g} px")
         return out
     out.path = path
-    _accept(out, res, uv, xyz, support)
+    _accept(out, res, uv, landmarks, rows, support)
     if not tighten:
         return out
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
@@ -305,8 +309,7 @@ def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures,
     already computed: `global_matches`' landmark and keypoint rows), PnP, then tightened."""
     li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio, opts.device)
     record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
-    return _from_correspondences("global", feats.uv[ki], landmarks.xyz[li], record, landmarks, lm_desc, feats,
-                                 camera, opts, seed)
+    return _from_correspondences("global", feats.uv[ki], li, record, landmarks, lm_desc, feats, camera, opts, seed)
 
 
 def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
@@ -320,8 +323,33 @@ def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeature
               "matches": int(len(verified)), "verified_pairs": int(verified.verified_pairs)}
     scale = min(camera.width, camera.height) / landmarks.image_short_side
     strict = replace(opts, max_error_px=VERIFIED_MAX_ERROR_PX * scale)
-    return _from_correspondences("verified", verified.uv, verified.xyz, record, landmarks, lm_desc, feats, camera,
-                                 strict, seed, verified.keypoint, tighten=False)
+    return _from_correspondences("verified", verified.uv, verified.landmark, record, landmarks, lm_desc, feats,
+                                 camera, strict, seed, verified.keypoint, tighten=False)
+
+
+def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
+                opts: FeatureMatchOptions, seed: int = 0, image_descriptors: list[np.ndarray] | None = None) -> None:
+    """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
+    the query matched to the mapping images that observe the landmarks the answer was found with
+    (`pose_checked_matches`: per image, verified by the answer's pose within twice
+    VERIFIED_MAX_ERROR_PX), and the pose refined on those within VERIFIED_MAX_ERROR_PX (COLMAP's
+    refinement, as the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once per image it
+    matched in, as SIFT + PnP counts it. That count is what makes the baseline's pose the more precise
+    one on mini: its correspondences counted once each gave a worse median (docs/results.md).
+    Replaces `out`'s pose when at least min_inliers distinct keypoints support the new one."""
+    assert out.R is not None and out.t is not None
+    uv, _ = project_points(camera, out.match_xyz, out.R, out.t)
+    seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
+    scale = min(camera.width, camera.height) / landmarks.image_short_side
+    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, 2 * VERIFIED_MAX_ERROR_PX * scale,
+                                 image_descriptors)
+    res = refine_on_inliers(found.uv, found.xyz, camera, out.R, out.t, VERIFIED_MAX_ERROR_PX * scale) \
+        if len(found) >= opts.min_inliers else None
+    support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[res.inlier_mask])))
+    out.passes.append({"kind": "images", "radius_px": None, "candidates": int(found.images),
+                       "matches": int(len(found)), "verified_pairs": int(found.verified_pairs), "inliers": support})
+    if support >= opts.min_inliers:
+        _accept(out, res, found.uv, landmarks, found.landmark, support)
 
 
 def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
@@ -330,7 +358,7 @@ def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
     found = [h for h in hypotheses if h.success]
     best = max(found, key=lambda h: h.inliers) if found else FeatureResult(None, None)
     best = FeatureResult(best.R, best.t, best.inliers, best.matches, best.path, [], best.match_uv, best.match_xyz,
-                         best.why)
+                         best.match_landmark, best.why)
     for h in hypotheses:
         best.passes.extend(h.passes)
     best.tried = [{"path": h.path or h.passes[0]["kind"], "inliers": h.inliers if h.success else 0}
@@ -344,14 +372,17 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                        R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
                        verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
                        global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                       weak_prior: bool = False) -> FeatureResult:
+                       weak_prior: bool = False, image_descriptors: list[np.ndarray] | None = None) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
     from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior,
     or the prior is `weak_prior`: too few of the map's cells agree with it, so the guided passes
     may have settled on a wrong pose), matching against every landmark (unless not `use_global`;
     `global_pairs` gives those matches when they are computed already); when the guided passes find
     none, SIFT + PnP's evidence too (`verified`, called only then: it is the expensive one). The
-    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors."""
+    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors. With
+    opts.final "images" and landmarks with observations (`image_descriptors`: their unit descriptors
+    per image, computed once per map), a winner from the guided or global path gets `images_pass`
+    (SIFT + PnP's own path, "verified", is that evidence already)."""
     hypotheses = []
     if R0 is not None and t0 is not None:
         hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
@@ -363,4 +394,7 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
         found = verified() if verified is not None else None
         if found is not None:
             hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, found, opts, seed))
-    return best_hypothesis(hypotheses)
+    best = best_hypothesis(hypotheses)
+    if opts.final == "images" and best.success and best.path != "verified" and landmarks.observations is not None:
+        images_pass(best, landmarks, feats, camera, opts, seed, image_descriptors)
+    return best

@@ -14,6 +14,7 @@ from usvc.core.precision import PRECISIONS
 BACKENDS = ("pycolmap", "opencv")
 REFINE = ("features", "keypoints", "none")
 PRIORS = ("learned", "none")  # what guides refinement by features first
+FINAL = ("guided", "images")  # refinement by features' last evidence (usvc/relocalize/feature_refinement.py)
 EXTRACTORS = ("opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
@@ -55,11 +56,13 @@ class RelocalizeOptions:
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
+    features_final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (then SIFT + PnP's per-image matches around it, checked by its pose, PnP at 4 px: the baseline's weighting, more precise on mini, +35-170 ms a query)
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
         out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
         out += one_of(self, "refine", REFINE) + one_of(self, "prior", PRIORS) + one_of(self, "features_extractor", EXTRACTORS)
+        out += one_of(self, "features_final", FINAL)
         out += positive(self, "max_error_px", "min_inliers") + refine_problems(self, "refine_")
         out += positive(self, "features_max_keypoints", "features_max_error_px", "features_view_margin_deg")
         for name in ("max_error_px", "features_max_error_px"):

@@ -171,6 +171,35 @@ def _solve_pycolmap(
     return pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64), np.asarray(res["inlier_mask"], bool)
 
 
+def refine_on_inliers(points2d: np.ndarray, points3d: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
+                      max_error_px: float, rounds: int = 2) -> PnPResult:
+    """The pose (R, t) refined on the correspondences it explains within `max_error_px`: COLMAP's
+    non-linear absolute-pose refinement (the last step of its LO-RANSAC), then the inliers again
+    under the refined pose, `rounds` times. For correspondences a pose has already checked, where
+    RANSAC's sampling would only find that pose again. Failure (success False) when the refinement
+    does not converge or fewer than 4 correspondences are inliers."""
+    start = time.perf_counter()
+    p2 = np.ascontiguousarray(points2d, dtype=np.float64)
+    p3 = np.ascontiguousarray(points3d, dtype=np.float64)
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
+    for _ in range(rounds):
+        if int(mask.sum()) < 4:
+            break
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+        res = pycolmap.refine_absolute_pose(pose, p2, p3, mask, cam, pycolmap.AbsolutePoseRefinementOptions())
+        if res is None:
+            break
+        pose = res["cam_from_world"]
+        R, t = pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64)
+        mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
+    else:
+        return PnPResult(True, R, t, mask, int(mask.sum()), time.perf_counter() - start)
+    return PnPResult(False, np.full((3, 3), np.nan), np.full(3, np.nan), mask, int(mask.sum()),
+                     time.perf_counter() - start)
+
+
 def solve_pnp(
     points2d: np.ndarray,
     points3d: np.ndarray,

@@ -452,7 +452,8 @@ class Relocalizer(FocalVerdicts):
         assert self.landmarks is not None
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed, verified=evidence.verified, use_global=evidence.use_global,
-                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior)
+                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior,
+                                   image_descriptors=self._observation_desc)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()
         return found

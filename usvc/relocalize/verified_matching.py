@@ -23,6 +23,7 @@ import pycolmap
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, unit_descriptors
+from usvc.relocalize.pnp import project_points
 from usvc.relocalize.query_features import QueryFeatures
 
 log = logging.getLogger(__name__)
@@ -128,6 +129,52 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     uv = feats.uv[kp].reshape(-1, 2)
     return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(slices), matched, verified,
                            time.perf_counter() - t0)
+
+
+def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
+                         seen: np.ndarray, max_error_px: float,
+                         image_descriptors: list[np.ndarray] | None = None) -> VerifiedMatches:
+    """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
+    keypoints matched as `verified_matches` matches them, but only to the mapping images that
+    observe at least MIN_PAIR_INLIERS of the landmarks in `seen` (the rows the pose was found with)
+    and only to their observations of landmarks in front of the camera and inside the photo; each
+    pair's matches are verified by the pose instead of two-view geometry (the landmark projects
+    within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
+    gives none. A keypoint matched in several images counts once per image, as in SIFT + PnP."""
+    t0 = time.perf_counter()
+    obs = landmarks.observations
+    if obs is None:
+        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
+    slices = obs.image_slices()
+    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    uv_lm, depth = project_points(camera, landmarks.xyz, R, t)
+    visible = (depth > 0) & np.all(np.isfinite(uv_lm), axis=1) & (uv_lm[:, 0] >= 0) & (uv_lm[:, 0] <= camera.width) \
+        & (uv_lm[:, 1] >= 0) & (uv_lm[:, 1] <= camera.height)
+    in_seen = np.zeros(len(landmarks.xyz), bool)
+    in_seen[np.asarray(seen, np.int64)] = True
+    landmark, keypoint = [], []
+    compared = matched = verified = 0
+    for (_, a, b), desc in zip(slices, descs):
+        rows = obs.landmark[a:b]
+        if int(in_seen[rows].sum()) < MIN_PAIR_INLIERS:
+            continue
+        compared += 1
+        kept = np.flatnonzero(visible[rows])
+        qi, mi = mutual_ratio_matches(feats.descriptor, desc[kept])
+        if len(qi) < MIN_PAIR_INLIERS:
+            continue
+        matched += 1
+        lm = rows[kept[mi]].astype(np.int64)
+        ok = np.linalg.norm(uv_lm[lm] - feats.uv[qi], axis=1) <= max_error_px
+        if int(ok.sum()) < MIN_PAIR_INLIERS:
+            continue
+        verified += 1
+        keypoint.append(qi[ok])
+        landmark.append(lm[ok])
+    kp = np.concatenate(keypoint) if keypoint else np.zeros(0, np.int64)
+    lm = np.concatenate(landmark) if landmark else np.zeros(0, np.int64)
+    return VerifiedMatches(feats.uv[kp].reshape(-1, 2), landmarks.xyz[lm].reshape(-1, 3), lm, kp, compared, matched,
+                           verified, time.perf_counter() - t0)
 
 
 def observation_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
