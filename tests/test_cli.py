@@ -373,6 +373,8 @@ def test_localize_landmarks_flags(files: dict[str, Path], tmp_path: Path) -> Non
     assert blind.returncode == 1 and "prior=none needs the map's landmarks" in blind.stderr
     assert len(blind.stderr.strip().splitlines()) == 1 and "Traceback" not in blind.stderr
     assert usvc(*base, "--prior", "maybe", files["photo"]).returncode == 2
+    assert usvc(*base, "--final", "maybe", files["photo"]).returncode == 2
+    assert usvc(*base, "--refine", "none", "--final", "images", files["photo"]).returncode == 0
 
 
 def test_photos_are_decoded_one_ahead_in_order(monkeypatch, tmp_path: Path) -> None:

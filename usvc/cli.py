@@ -16,7 +16,7 @@ from usvc.core.errors import SceneError, UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
-from usvc.relocalize.options import MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE
+from usvc.relocalize.options import FINAL, MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE
 
 if TYPE_CHECKING:
     from usvc.core.scene import Camera
@@ -278,7 +278,7 @@ def _localize(args: argparse.Namespace) -> int:
     device = check_device(args.device)
     refine = "none" if args.no_refine else args.refine
     options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
-                                prior=args.prior, precision=args.precision)
+                                prior=args.prior, features_final=args.final, precision=args.precision)
     if args.min_confidence is not None:
         if not 0.0 <= args.min_confidence <= 1.0:
             raise UsvcError(f"--min-confidence {args.min_confidence:g}: must be in [0, 1]")
@@ -412,6 +412,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --refine features: learned (default): the learned pose guides matching first, the "
                           "photo is matched as SIFT + PnP matches it when that leads nowhere; none: SIFT + PnP's "
                           "evidence alone (needs landmarks with observations)")
+    loc.add_argument("--final", choices=FINAL, default="guided",
+                     help="with --refine features: guided (default): the answer of the guided passes; images: then "
+                          "one more pass with SIFT + PnP's per-image matches around it (the baseline's precision, "
+                          "0.06-0.3 s more per photo on two cores)")
     loc.add_argument("--landmarks", help="the map's landmarks.h5 (default: found beside the map: landmarks.h5 in "
                                          "its folder, else ../landmarks/landmarks.h5)")
     loc.add_argument("--device", default="auto", help="torch device: auto (CUDA where torch sees one) | cpu | cuda | cuda:N")
