@@ -41,7 +41,7 @@ from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa:
 from usvc.core.scene import Camera  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
-from usvc.relocalize.options import REFINE  # noqa: E402
+from usvc.relocalize.options import FINAL, REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 from usvc.sfm.tracks_file import read_median_depth  # noqa: E402
 
@@ -142,6 +142,8 @@ def main() -> None:
     parser.add_argument("--min-confidence", type=float, default=0.0,
                         help="relocalize.min_confidence during the run (0: sweep it in the table; "
                              f"{RelocalizeOptions().min_confidence:g}: the default, as_run then gives its figures)")
+    parser.add_argument("--final", choices=FINAL, default=RelocalizeOptions().features_final,
+                        help="relocalize.features_final during the run")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -151,7 +153,7 @@ def main() -> None:
         own = scene_dir.resolve()
         foreign = _foreign_photos([f for f in args.foreign if own.name not in str(f.resolve())], args.foreign_per_folder)
         options = RelocalizeOptions(min_confidence=args.min_confidence, focal_tolerance=args.focal_tolerance,
-                                    refine=args.refine)
+                                    refine=args.refine, features_final=args.final)
         rows += run_scene(scene_dir, foreign, args.noise, seed=0, options=options)
     kinds = sorted({r["kind"] for r in rows})
     by_kind = {}
@@ -167,12 +169,14 @@ def main() -> None:
                       "confidence_min_of_right": float(min((r["confidence"] for r in sel if r["right"]), default=1.0))}
     report = {"scenes": [str(s) for s in args.scene_dir], "foreign": [str(f) for f in args.foreign],
               "focal_tolerance": args.focal_tolerance, "refine": args.refine, "min_confidence": args.min_confidence,
+              "features_final": args.final,
               "by_kind": by_kind, **thresholds_report(rows, args.precision), "answers": rows}
     text = json.dumps(report, indent=1)
     print(json.dumps({k: v for k, v in report.items() if k not in ("table", "answers")}, indent=1))
     if args.out:
         args.out.write_text(text + "\n")
-    write_report("confidence_" + "+".join(scene_of(s) for s in args.scene_dir), report)
+    final = "" if args.final == RelocalizeOptions().features_final else f"_final_{args.final}"
+    write_report("confidence_" + "+".join(scene_of(s) for s in args.scene_dir) + final, report)
 
 
 if __name__ == "__main__":
