@@ -90,6 +90,16 @@ def _pycolmap_camera(K: np.ndarray, width: int, height: int) -> pycolmap.Camera:
                            params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
 
 
+def _per_image(landmarks: Landmarks, image_descriptors: list[np.ndarray] | None
+               ) -> tuple[LandmarkObservations, list[tuple[int, int, int]], list[np.ndarray]]:
+    """The landmarks' observations, their (image, start, end) slices and each image's unit descriptors."""
+    obs = landmarks.observations
+    if obs is None:
+        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
+    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    return obs, obs.image_slices(), descs
+
+
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
                      image_descriptors: list[np.ndarray] | None = None) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
@@ -97,11 +107,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
     descriptors of each image's observations (`observation_descriptors`), computed once per map."""
     t0 = time.perf_counter()
-    obs = landmarks.observations
-    if obs is None:
-        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
-    slices = obs.image_slices()
-    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    obs, slices, descs = _per_image(landmarks, image_descriptors)
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.random_seed = int(seed)
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
@@ -142,11 +148,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
     gives none. A keypoint matched in several images counts once per image, as in SIFT + PnP."""
     t0 = time.perf_counter()
-    obs = landmarks.observations
-    if obs is None:
-        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
-    slices = obs.image_slices()
-    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    obs, slices, descs = _per_image(landmarks, image_descriptors)
     uv_lm, depth = project_points(camera, landmarks.xyz, R, t)
     visible = (depth > 0) & np.all(np.isfinite(uv_lm), axis=1) & (uv_lm[:, 0] >= 0) & (uv_lm[:, 0] <= camera.width) \
         & (uv_lm[:, 1] >= 0) & (uv_lm[:, 1] <= camera.height)
