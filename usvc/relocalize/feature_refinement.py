@@ -29,7 +29,7 @@ from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
+from usvc.relocalize.pnp import in_image, project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
 
@@ -100,9 +100,7 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
     """(indices, projected uv) of the landmarks a camera at (R, t) can see: in front of it, inside
     the image, and viewed from within their mapped viewing cone widened by `margin_deg`."""
     uv, depth = project_points(camera, landmarks.xyz, R, t)
-    ok = (depth > 0) & np.all(np.isfinite(uv), axis=1)
-    ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    near = np.flatnonzero(ok)  # the viewing cone is tested on these only (a view sees a fraction of the map)
+    near = np.flatnonzero(in_image(camera, uv, depth))  # the viewing cone is tested on these only (a view sees a fraction of the map)
     ray = camera_centers(R, t)[None] - landmarks.xyz[near]
     ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
     angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ray, landmarks.view_dir[near]), -1.0, 1.0)))

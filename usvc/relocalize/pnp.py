@@ -158,10 +158,20 @@ def _solve_opencv(
     return R, tvec.reshape(3), inliers
 
 
+def _pycolmap_camera(camera: Camera) -> pycolmap.Camera:
+    return pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+
+
+def in_image(camera: Camera, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(N,) bool: projections (`project_points`) in front of the camera and inside its image."""
+    return (depth > 0) & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) \
+        & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+
+
 def _solve_pycolmap(
     p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    cam = _pycolmap_camera(camera)
     est = absolute_pose_options(max_error_px, seed)
     ref = pycolmap.AbsolutePoseRefinementOptions()
     res = pycolmap.estimate_and_refine_absolute_pose(p2, p3, cam, est, ref)
@@ -181,7 +191,7 @@ def refine_on_inliers(points2d: np.ndarray, points3d: np.ndarray, camera: Camera
     start = time.perf_counter()
     p2 = np.ascontiguousarray(points2d, dtype=np.float64)
     p3 = np.ascontiguousarray(points3d, dtype=np.float64)
-    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    cam = _pycolmap_camera(camera)
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
     mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
     for _ in range(rounds):

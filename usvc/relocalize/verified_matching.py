@@ -23,7 +23,7 @@ import pycolmap
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, unit_descriptors
-from usvc.relocalize.pnp import project_points
+from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_features import QueryFeatures
 
 log = logging.getLogger(__name__)
@@ -150,8 +150,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     uv_lm, depth = project_points(camera, landmarks.xyz, R, t)
-    visible = (depth > 0) & np.all(np.isfinite(uv_lm), axis=1) & (uv_lm[:, 0] >= 0) & (uv_lm[:, 0] <= camera.width) \
-        & (uv_lm[:, 1] >= 0) & (uv_lm[:, 1] <= camera.height)
+    visible = in_image(camera, uv_lm, depth)
     in_seen = np.zeros(len(landmarks.xyz), bool)
     in_seen[np.asarray(seen, np.int64)] = True
     landmark, keypoint = [], []
