@@ -151,6 +151,16 @@ def test_verified_matches_lift_the_query_keypoints_to_their_points():
     assert len(verified_matches(landmarks, other, CAM, seed=0)) < MIN_PAIR_INLIERS
 
 
+def test_verified_matches_are_the_same_bits_on_any_number_of_threads():
+    landmarks, feats = scene()
+    one = verified_matches(landmarks, feats, CAM, seed=3, threads=1)
+    for threads in (2, 3, 8):
+        many = verified_matches(landmarks, feats, CAM, seed=3, threads=threads)
+        assert many.verified_pairs == one.verified_pairs and many.matched_pairs == one.matched_pairs
+        for name in ("uv", "xyz", "landmark", "keypoint"):
+            assert np.array_equal(getattr(many, name), getattr(one, name)), (threads, name)
+
+
 def test_a_wrong_learned_pose_still_localizes_through_the_fallback(tmp_path: Path, monkeypatch):
     landmarks, feats = scene()
     path = _map(tmp_path, landmarks, monkeypatch, feats)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,11 +102,13 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[np.ndarray] | None
 
 
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
-                     image_descriptors: list[np.ndarray] | None = None) -> VerifiedMatches:
+                     image_descriptors: list[np.ndarray] | None = None, threads: int = 1) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
     `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
-    descriptors of each image's observations (`observation_descriptors`), computed once per map."""
+    descriptors of each image's observations (`observation_descriptors`), computed once per map.
+    The pairs are verified on `threads` threads (COLMAP's RANSAC releases Python's lock; each pair
+    has its own seeded RANSAC, so the matches are the same bits whatever the count)."""
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     options = pycolmap.TwoViewGeometryOptions()
@@ -113,27 +116,34 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
-    uv, landmark, keypoint = [], [], []
-    matched = verified = 0
+    pairs = []  # (image, first observation, query rows, image rows) of the pairs with enough matches
     for (image, a, b), desc in zip(slices, descs):
         qi, mi = mutual_ratio_matches(feats.descriptor, desc)
-        if len(qi) < MIN_PAIR_INLIERS:
-            continue
-        matched += 1
+        if len(qi) >= MIN_PAIR_INLIERS:
+            pairs.append((image, a, b, qi, mi))
+
+    def verify(pair: tuple) -> np.ndarray | None:
+        """The pair's inlier matches (query row, observation row within the image), or None."""
+        image, a, b, qi, mi = pair
         w, h = obs.image_size[image]
         geometry = pycolmap.estimate_two_view_geometry(
             qcam, feats.uv, _pycolmap_camera(obs.image_K[image], w, h), obs.uv[a:b].astype(np.float64),
             np.stack([qi, mi], axis=1).astype(np.uint32), options)
         inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
-        if geometry.config not in _VALID or len(inl) < MIN_PAIR_INLIERS:
-            continue
-        verified += 1
-        keypoint.append(inl[:, 0])
-        landmark.append(obs.landmark[a + inl[:, 1]].astype(np.int64))
+        return inl if geometry.config in _VALID and len(inl) >= MIN_PAIR_INLIERS else None
+
+    if threads > 1 and len(pairs) > 1:
+        with ThreadPoolExecutor(max_workers=min(int(threads), len(pairs)), thread_name_prefix="usvc-verify") as pool:
+            inliers = list(pool.map(verify, pairs))  # in the pairs' order
+    else:
+        inliers = [verify(pair) for pair in pairs]
+    keypoint = [inl[:, 0] for inl in inliers if inl is not None]
+    landmark = [obs.landmark[pair[1] + inl[:, 1]].astype(np.int64) for pair, inl in zip(pairs, inliers)
+                if inl is not None]
     kp = np.concatenate(keypoint) if keypoint else np.zeros(0, np.int64)
     lm = np.concatenate(landmark) if landmark else np.zeros(0, np.int64)
     uv = feats.uv[kp].reshape(-1, 2)
-    return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(slices), matched, verified,
+    return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(slices), len(pairs), len(keypoint),
                            time.perf_counter() - t0)
 
 
