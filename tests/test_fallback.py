@@ -151,14 +151,23 @@ def test_verified_matches_lift_the_query_keypoints_to_their_points():
     assert len(verified_matches(landmarks, other, CAM, seed=0)) < MIN_PAIR_INLIERS
 
 
-def test_verified_matches_are_the_same_bits_on_any_number_of_threads():
+def test_per_image_matches_are_the_same_bits_on_any_number_of_threads():
+    """SIFT + PnP's pairs (verified by two-view geometry, or by a pose) matched and verified side by
+    side on several threads give the matches of one thread, in the same order."""
     landmarks, feats = scene()
-    one = verified_matches(landmarks, feats, CAM, seed=3, threads=1)
-    for threads in (2, 3, 8):
-        many = verified_matches(landmarks, feats, CAM, seed=3, threads=threads)
-        assert many.verified_pairs == one.verified_pairs and many.matched_pairs == one.matched_pairs
-        for name in ("uv", "xyz", "landmark", "keypoint"):
-            assert np.array_equal(getattr(many, name), getattr(one, name)), (threads, name)
+    every = np.arange(len(landmarks))
+    runs = {"verified": lambda n: verified_matches(landmarks, feats, CAM, seed=3, threads=n),
+            "pose-checked": lambda n: pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every, 2.0,
+                                                           threads=n)}
+    for kind, run in runs.items():
+        one = run(1)
+        assert one.verified_pairs == len(MAPPING) > 1, kind  # several pairs: the threads have work to share
+        for threads in (2, 3, 8):
+            many = run(threads)
+            assert (many.images, many.matched_pairs, many.verified_pairs) == \
+                (one.images, one.matched_pairs, one.verified_pairs), (kind, threads)
+            for name in ("uv", "xyz", "landmark", "keypoint"):
+                assert np.array_equal(getattr(many, name), getattr(one, name)), (kind, threads, name)
 
 
 def test_a_wrong_learned_pose_still_localizes_through_the_fallback(tmp_path: Path, monkeypatch):

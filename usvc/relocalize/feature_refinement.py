@@ -56,17 +56,19 @@ class FeatureMatchOptions:
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
     final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (`images_pass`)
+    threads: int = 1  # the query's threads: the images pass matches its images side by side on them
 
 
-def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None) -> FeatureMatchOptions:
+def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None,
+                    threads: int = 1) -> FeatureMatchOptions:
     """The relocalize options' features_* settings in px of an image whose short side is `short_side`;
-    the descriptor products on the torch `device` (None: numpy on the CPU)."""
+    the descriptor products on the torch `device` (None: numpy on the CPU); the query's `threads`."""
     scale = short_side / REFERENCE_SHORT_SIDE
     return FeatureMatchOptions(radii_px=tuple(float(r) * scale for r in options.features_radii_px),
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
                                view_margin_deg=options.features_view_margin_deg, device=device,
-                               final=options.features_final)
+                               final=options.features_final, threads=threads)
 
 
 @dataclass
@@ -340,7 +342,7 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
     scale = min(camera.width, camera.height) / landmarks.image_short_side
     found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, 2 * VERIFIED_MAX_ERROR_PX * scale,
-                                 image_descriptors)
+                                 image_descriptors, opts.threads)
     res = refine_on_inliers(found.uv, found.xyz, camera, out.R, out.t, VERIFIED_MAX_ERROR_PX * scale) \
         if len(found) >= opts.min_inliers else None
     support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[res.inlier_mask])))

@@ -418,7 +418,8 @@ class Relocalizer(FocalVerdicts):
         feats = found_set.feats
         if found_set.resized:
             camera = camera.scaled(found_set.gray.shape[1], found_set.gray.shape[0])
-        opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device))
+        opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device),
+                               torch.get_num_threads())
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs,
                                  threads=torch.get_num_threads())

@@ -132,11 +132,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
         return inl if geometry.config in _VALID and len(inl) >= MIN_PAIR_INLIERS else None
 
-    if threads > 1 and len(pairs) > 1:
-        with ThreadPoolExecutor(max_workers=min(int(threads), len(pairs)), thread_name_prefix="usvc-verify") as pool:
-            inliers = list(pool.map(verify, pairs))  # in the pairs' order
-    else:
-        inliers = [verify(pair) for pair in pairs]
+    inliers = _in_order(verify, pairs, threads)
     keypoint = [inl[:, 0] for inl in inliers if inl is not None]
     landmark = [obs.landmark[pair[1] + inl[:, 1]].astype(np.int64) for pair, inl in zip(pairs, inliers)
                 if inl is not None]
@@ -149,43 +145,49 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
 
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
                          seen: np.ndarray, max_error_px: float,
-                         image_descriptors: list[np.ndarray] | None = None) -> VerifiedMatches:
+                         image_descriptors: list[np.ndarray] | None = None, threads: int = 1) -> VerifiedMatches:
     """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
     keypoints matched as `verified_matches` matches them, but only to the mapping images that
     observe at least MIN_PAIR_INLIERS of the landmarks in `seen` (the rows the pose was found with)
     and only to their observations of landmarks in front of the camera and inside the photo; each
     pair's matches are verified by the pose instead of two-view geometry (the landmark projects
     within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
-    gives none. A keypoint matched in several images counts once per image, as in SIFT + PnP."""
+    gives none. A keypoint matched in several images counts once per image, as in SIFT + PnP. The
+    images are matched on `threads` threads (numpy's products release Python's lock), in order."""
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     uv_lm, depth = project_points(camera, landmarks.xyz, R, t)
     visible = in_image(camera, uv_lm, depth)
     in_seen = np.zeros(len(landmarks.xyz), bool)
     in_seen[np.asarray(seen, np.int64)] = True
-    landmark, keypoint = [], []
-    compared = matched = verified = 0
-    for (_, a, b), desc in zip(slices, descs):
-        rows = obs.landmark[a:b]
-        if int(in_seen[rows].sum()) < MIN_PAIR_INLIERS:
-            continue
-        compared += 1
+    chosen = [(obs.landmark[a:b], desc) for (_, a, b), desc in zip(slices, descs)
+              if int(in_seen[obs.landmark[a:b]].sum()) >= MIN_PAIR_INLIERS]
+
+    def match(image: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The image's matches the pose explains (query rows, landmark rows); None: too few matches at all."""
+        rows, desc = image
         kept = np.flatnonzero(visible[rows])
         qi, mi = mutual_ratio_matches(feats.descriptor, desc[kept])
         if len(qi) < MIN_PAIR_INLIERS:
-            continue
-        matched += 1
+            return None
         lm = rows[kept[mi]].astype(np.int64)
         ok = np.linalg.norm(uv_lm[lm] - feats.uv[qi], axis=1) <= max_error_px
-        if int(ok.sum()) < MIN_PAIR_INLIERS:
-            continue
-        verified += 1
-        keypoint.append(qi[ok])
-        landmark.append(lm[ok])
-    kp = np.concatenate(keypoint) if keypoint else np.zeros(0, np.int64)
-    lm = np.concatenate(landmark) if landmark else np.zeros(0, np.int64)
-    return VerifiedMatches(feats.uv[kp].reshape(-1, 2), landmarks.xyz[lm].reshape(-1, 3), lm, kp, compared, matched,
-                           verified, time.perf_counter() - t0)
+        return qi[ok], lm[ok]
+
+    found = _in_order(match, chosen, threads)
+    pairs = [f for f in found if f is not None and len(f[0]) >= MIN_PAIR_INLIERS]
+    kp = np.concatenate([q for q, _ in pairs]) if pairs else np.zeros(0, np.int64)
+    lm = np.concatenate([m for _, m in pairs]) if pairs else np.zeros(0, np.int64)
+    return VerifiedMatches(feats.uv[kp].reshape(-1, 2), landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(chosen),
+                           sum(f is not None for f in found), len(pairs), time.perf_counter() - t0)
+
+
+def _in_order(fn, items: list, threads: int) -> list:
+    """`fn(item)` for every item, in order, on up to `threads` threads (in place with one)."""
+    if threads > 1 and len(items) > 1:
+        with ThreadPoolExecutor(max_workers=min(int(threads), len(items)), thread_name_prefix="usvc-pairs") as pool:
+            return list(pool.map(fn, items))
+    return [fn(item) for item in items]
 
 
 def observation_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
