@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import pycolmap
@@ -28,6 +30,8 @@ from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_features import QueryFeatures
 
 log = logging.getLogger(__name__)
+Item = TypeVar("Item")
+Out = TypeVar("Out")
 
 MAX_RATIO = 0.8  # COLMAP's SiftMatchingOptions.max_ratio
 MAX_DISTANCE = 0.7  # COLMAP's max_distance: the angle (rad) between unit descriptors
@@ -182,7 +186,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
                            sum(f is not None for f in found), len(pairs), time.perf_counter() - t0)
 
 
-def _in_order(fn, items: list, threads: int) -> list:
+def _in_order(fn: Callable[[Item], Out], items: list[Item], threads: int) -> list[Out]:
     """`fn(item)` for every item, in order, on up to `threads` threads (in place with one)."""
     if threads > 1 and len(items) > 1:
         with ThreadPoolExecutor(max_workers=min(int(threads), len(items)), thread_name_prefix="usvc-pairs") as pool:
