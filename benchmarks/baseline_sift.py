@@ -8,7 +8,10 @@ there): per-seed summaries, their mean and standard deviation, timings, and the 
 not localize with the reason; the same report, with the command line and the machine context,
 also goes to results/benchmarks/baseline_sift_<scene name>.json.
 
-Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [override ...]
+With `--model stage` the queries are registered against the sfm stage's own model (data/<scene>/sfm/model:
+the points usvc's landmarks hold) instead of one triangulated here, and the reports are named
+baseline_stage_model.json and baseline_sift_<scene name>_stage_model.json.
+Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [--model own|stage] [override ...]
 (overrides are Hydra's, e.g. scene.name=office_opencv scene.path=data/raw/office_opencv)
 """
 
@@ -21,6 +24,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -51,7 +55,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", required=True, help="scene config name (conf/scene/<name>.yaml)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="RANSAC seeds")
-    parser.add_argument("--out", type=Path, help="default: results/<scene name>/baseline.json")
+    parser.add_argument("--out", type=Path, help="default: results/<scene name>/baseline[_stage_model].json")
+    parser.add_argument("--model", choices=("own", "stage"), default="own",
+                        help="own: triangulate the mapping photos here, as the sfm stage does | stage: the sfm "
+                             "stage's model itself")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. scene.name=... data_dir=...")
     args = parser.parse_args()
     script_logging()
@@ -60,10 +67,17 @@ def main() -> None:
     scene = read_scene_h5(paths.scene_file)
     median_depth = read_median_depth(paths.tracks_file)
     opts = SfmOptions(**cfg.sfm)
+    model = None
+    if args.model == "stage":
+        model_dir = paths.sfm / "model"
+        if not (model_dir / "points3D.bin").is_file():
+            raise SystemExit(f"--model stage: no SfM model at {model_dir} (run the sfm stage first)")
+        model = pycolmap.Reconstruction(str(model_dir))
+    suffix = "_stage_model" if model is not None else ""
     with tempfile.TemporaryDirectory(prefix="usvc-baseline-") as work:
         # threads=-1: COLMAP's SIFT on all cores, unless sfm.num_threads says otherwise
         results, timings = sift_pnp_baseline(scene, paths.prepared / IMAGE_DIR, Path(work), opts, args.seeds,
-                                             threads=-1)
+                                             threads=-1, model=model)
     per_seed, failures = {}, {}
     for seed, poses in results.items():
         estimates = {n: (p.R, p.t) for n, p in poses.items() if p.R is not None}
@@ -72,10 +86,10 @@ def main() -> None:
         per_seed[str(seed)] = summary
         failures[str(seed)] = {n: p.why for n, p in poses.items() if p.why}
     mean, std = mean_std(list(per_seed.values()))
-    report = {"method": "sift_pnp", "scene": scene.name, "seeds": args.seeds,
+    report = {"method": "sift_pnp", "scene": scene.name, "seeds": args.seeds, "model": args.model,
               "sift_max_features": opts.max_num_features, "mean": mean, "std": std, "per_seed": per_seed,
               "not_localized": failures, "timings": timings}
-    out = args.out or Path(cfg.results_dir) / scene.name / "baseline.json"
+    out = args.out or Path(cfg.results_dir) / scene.name / f"baseline{suffix}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
     keys = [k for k in ("acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
@@ -83,7 +97,7 @@ def main() -> None:
     print(f"{scene.name}: SIFT + PnP over seeds {args.seeds} ({mean['n_queries']:.0f} queries) -> {out}")
     for k in keys:
         print(f"  {k:22s} {mean[k]:.4g} ± {std[k]:.2g}")
-    print(f"-> {write_report(f'baseline_sift_{scene.name}', report)}")
+    print(f"-> {write_report(f'baseline_sift_{scene.name}{suffix}', report)}")
 
 
 if __name__ == "__main__":

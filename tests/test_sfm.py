@@ -182,6 +182,37 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
             assert p.seconds > 0
 
 
+@pytest.mark.slow
+def test_sift_pnp_baseline_on_a_given_model_lifts_to_its_points(small_mini, tmp_path):
+    """`model=`: the queries registered against a given model (the sfm stage's own) give the poses of
+    the same model triangulated by the baseline itself (the same inliers; the correspondences in
+    another order, so RANSAC's draws differ: poses within 0.001° and 1e-4 scene units); a model
+    whose images carry other keypoints than the scene's SIFT finds (here: SIFT with an eighth of the
+    keypoints) is refused, naming an image."""
+    from dataclasses import replace
+
+    import pycolmap
+
+    from usvc.analysis.baseline_sift import sift_pnp_baseline
+    from usvc.core.pose_errors import rotation_error_deg, translation_error
+
+    scene = read_scene_h5(small_mini / "scene.h5")
+    (tmp_path / "own").mkdir()
+    own, _ = sift_pnp_baseline(scene, small_mini / IMAGE_DIR, tmp_path / "own", OPTS, seeds=[0], threads=-1)
+    model = pycolmap.Reconstruction(str(tmp_path / "own" / "model"))
+    (tmp_path / "given").mkdir()
+    given, _ = sift_pnp_baseline(scene, small_mini / IMAGE_DIR, tmp_path / "given", OPTS, seeds=[0], threads=-1,
+                                 model=model)
+    for name, p in own[0].items():
+        assert given[0][name].why == p.why == "" and given[0][name].inliers == p.inliers, name
+        assert rotation_error_deg(given[0][name].R, p.R) < 1e-3, name
+        assert translation_error(given[0][name].R, given[0][name].t, p.R, p.t) < 1e-4, name
+    (tmp_path / "fewer").mkdir()
+    fewer = replace(OPTS, max_num_features=OPTS.max_num_features // 8)
+    with pytest.raises(SfmError, match=r"cannot be the baseline's: its image '.+' has \d+ keypoints"):
+        sift_pnp_baseline(scene, small_mini / IMAGE_DIR, tmp_path / "fewer", fewer, seeds=[0], threads=-1, model=model)
+
+
 def test_two_mapping_images_say_why_they_are_not_enough(tmp_path):
     cam = Camera("PINHOLE", 64, 48, (50, 50, 32, 24))
     frames = [Frame(f"{i}.png", tmp_path / f"{i}.png", cam, "train", np.eye(3), np.array([0.1 * i, 0, 0]))

@@ -66,13 +66,29 @@ def _mapping_pairs(mapping: list[Frame], opts: SfmOptions) -> list[tuple[str, st
     return pose_pairs(mapping, opts.pose_pairs_per_image)
 
 
+def _shares_keypoints(db: pycolmap.Database, ids: dict[str, int], model: pycolmap.Reconstruction) -> str:
+    """Why the model's images do not carry this database's keypoints, index for index ("" when they do)."""
+    for image in model.images.values():
+        if image.name not in ids:
+            return f"its image {image.name!r} is not in the scene"
+        keypoints = db.read_keypoints(ids[image.name])[:, :2]
+        xy = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2)
+        if keypoints.shape != xy.shape or not np.allclose(keypoints, xy, atol=1e-3):
+            return f"its image {image.name!r} has {len(xy)} keypoints, SIFT found {len(keypoints)} or others there"
+    return ""
+
+
 def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOptions, seeds: list[int],
-                      threads: int) -> tuple[dict[int, dict[str, BaselinePose]], dict[str, float]]:
+                      threads: int, model: pycolmap.Reconstruction | None = None
+                      ) -> tuple[dict[int, dict[str, BaselinePose]], dict[str, float]]:
     """Localize every query of ``scene`` once per RANSAC seed; returns ({seed: {name: pose}}, timings).
 
     ``image_dir`` holds the prepared (pinhole) images by frame name; ``work_dir`` an empty folder
     for the COLMAP database and model; SIFT runs on ``threads`` threads (see
-    :func:`usvc.sfm.reconstruction.colmap_threads`).
+    :func:`usvc.sfm.reconstruction.colmap_threads`). With ``model`` (the sfm stage's own
+    reconstruction) the queries are registered against its points instead of a model triangulated
+    here: the mapping photos' SIFT is the stage's (the same extraction), so the matches lift to the
+    points usvc's landmarks hold; a model whose keypoints are not those is refused.
     """
     if not scene.has_poses:
         raise SfmError(f"scene {scene.name!r}: the SIFT baseline needs posed mapping images")
@@ -87,11 +103,18 @@ def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOp
     timings["extract_s_per_image"] = (time.perf_counter() - t0) / len(scene.frames)
 
     t0 = time.perf_counter()
-    _match_pairs(db_path, _pairs_file(work_dir / "mapping_pairs.txt", _mapping_pairs(mapping, opts)), opts)
-    model_dir = work_dir / "model"
-    model_dir.mkdir()
-    rec = pycolmap.triangulate_points(posed_reconstruction(mapping, db_path), db_path, image_dir, model_dir,
-                                      options=pipeline_options(opts), refine_intrinsics=False)
+    if model is None:
+        _match_pairs(db_path, _pairs_file(work_dir / "mapping_pairs.txt", _mapping_pairs(mapping, opts)), opts)
+        model_dir = work_dir / "model"
+        model_dir.mkdir()
+        rec = pycolmap.triangulate_points(posed_reconstruction(mapping, db_path), db_path, image_dir, model_dir,
+                                          options=pipeline_options(opts), refine_intrinsics=False)
+    else:
+        rec = model
+        with pycolmap.Database.open(db_path) as db:
+            why = _shares_keypoints(db, {im.name: im.image_id for im in db.read_all_images()}, rec)
+        if why:
+            raise SfmError(f"scene {scene.name!r}: the given SfM model cannot be the baseline's: {why}")
     timings["map_s"] = time.perf_counter() - t0
     if rec.num_points3D() < opts.min_points:
         raise SfmError(f"scene {scene.name!r}: the SIFT model has only {rec.num_points3D()} points")
@@ -103,11 +126,14 @@ def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOp
     match_s = (time.perf_counter() - t0) / len(queries)
     timings["match_s_per_query"] = match_s
 
-    mapped = {im.image_id: im for im in rec.images.values() if im.has_pose}
     results: dict[int, dict[str, BaselinePose]] = {}
     db = pycolmap.Database.open(db_path)
     try:
         ids = {im.name: im.image_id for im in db.read_all_images()}
+        # by the database's image ids (a given model's own may differ); a given model's images in their
+        # order, so that RANSAC's draws do not depend on how the model was read
+        posed = [(ids[im.name], im) for im in rec.images.values() if im.has_pose]
+        mapped = dict(sorted(posed) if model is not None else posed)
         for seed in seeds:
             results[seed] = {}
             for q in queries:
