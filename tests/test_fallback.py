@@ -31,6 +31,8 @@ from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.relocalize.verified_matching import (
+    MAX_DISTANCE,
+    MAX_RATIO,
     MIN_PAIR_INLIERS,
     mutual_ratio_matches,
     pose_checked_matches,
@@ -137,6 +139,28 @@ def test_mutual_ratio_matching_keeps_only_clear_mutual_nearest_neighbours():
     assert np.array_equal(q, [*range(30), 31]) and np.array_equal(m, [*range(30), 30])
     confusable = unit_descriptors(np.stack([image[0], image[0] + 1e-3]))  # a twin: fails the ratio test
     assert len(mutual_ratio_matches(query[:1].astype(np.float32), confusable.astype(np.float32))[0]) == 0
+
+
+def test_mutual_ratio_matching_is_the_argmax_definition_with_ties():
+    """The mutual test by column maxima gives np.argmax's answer (the first row of a column's largest
+    entry), also where several rows reach it: duplicated keypoints tie exactly."""
+    rng = np.random.default_rng(1)
+    for trial in range(20):
+        image = unit_descriptors(rng.random((40 + trial, 128)) ** 4).astype(np.float32)
+        query = unit_descriptors(np.concatenate([image[:25] + 0.03 * rng.random((25, 128)),
+                                                 rng.random((15, 128)) ** 4])).astype(np.float32)
+        query = np.concatenate([query, query[rng.integers(0, 25, 5)]])  # exact duplicates: ties in a column
+        query = query[rng.permutation(len(query))]
+        q, m = mutual_ratio_matches(query, image)
+        sim = query @ image.T
+        first = np.argmax(sim, axis=1)
+        s1 = sim[np.arange(len(query)), first]
+        second = np.sort(sim, axis=1)[:, -2]
+        d1, d2 = np.arccos(np.clip(s1, -1, 1)), np.arccos(np.clip(second, -1, 1))
+        want = np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2) & (np.argmax(sim, axis=0)[first]
+                                                                               == np.arange(len(query))))
+        assert np.array_equal(q, want) and np.array_equal(m, first[want]), trial
+        assert len(q) >= 10, trial
 
 
 def test_verified_matches_lift_the_query_keypoints_to_their_points():
