@@ -56,7 +56,7 @@ class FeatureMatchOptions:
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
     final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (`images_pass`)
-    threads: int = 1  # the query's threads: the images pass matches its images side by side on them
+    threads: int = 1  # the query's threads: SIFT + PnP's pairs and the images pass's images side by side on them
 
 
 def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None,

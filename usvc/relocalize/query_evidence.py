@@ -20,13 +20,12 @@ class QueryEvidence:
     """`camera` is the query's at the feature image's size (an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix); `use_global` False (prior=none)
     leaves the global matches out of `unguided`; `global_pairs` gives those matches when they are
-    being found already (`usvc.relocalize.feature_job`); `threads` verify SIFT + PnP's pairs."""
+    being found already (`usvc.relocalize.feature_job`); SIFT + PnP's pairs are verified on `opts.threads`."""
 
     def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[np.ndarray] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
                  use_global: bool = True,
-                 global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None, threads: int = 1) -> None:
-        self.threads = threads
+                 global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
@@ -48,7 +47,7 @@ class QueryEvidence:
             return None
         if self._verified is None:
             self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
-                                              self.observation_desc, self.threads)
+                                              self.observation_desc, self.opts.threads)
         return self._verified
 
     def verified_record(self) -> dict | None:

@@ -421,8 +421,7 @@ class Relocalizer(FocalVerdicts):
         opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device),
                                torch.get_num_threads())
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
-                                 self.seed, use_global=self.prior, global_pairs=global_pairs,
-                                 threads=torch.get_num_threads())
+                                 self.seed, use_global=self.prior, global_pairs=global_pairs)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is
