@@ -11,7 +11,8 @@ also goes to results/benchmarks/baseline_sift_<scene name>.json.
 With `--model stage` the queries are registered against the sfm stage's own model (data/<scene>/sfm/model:
 the points usvc's landmarks hold) instead of one triangulated here, and the reports are named
 baseline_stage_model.json and baseline_sift_<scene name>_stage_model.json.
-Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [--model own|stage] [override ...]
+With `--poses-dir DIR` each seed's poses go to DIR/poses_seed<N>.txt too, for `compare_poses.py`.
+Run: python benchmarks/baseline_sift.py --scene office [--seeds 0 1 2] [--model own|stage] [--poses-dir DIR] [override ...]
 (overrides are Hydra's, e.g. scene.name=office_opencv scene.path=data/raw/office_opencv)
 """
 
@@ -32,6 +33,7 @@ sys.path.insert(0, str(REPO))
 from _report import write_report  # noqa: E402
 
 from usvc.analysis.baseline_sift import sift_pnp_baseline  # noqa: E402
+from usvc.core.poses_file import write_poses_txt  # noqa: E402
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5  # noqa: E402
 from usvc.metrics.evaluate import evaluate_poses  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
@@ -59,6 +61,9 @@ def main() -> None:
     parser.add_argument("--model", choices=("own", "stage"), default="own",
                         help="own: triangulate the mapping photos here, as the sfm stage does | stage: the sfm "
                              "stage's model itself")
+    parser.add_argument("--poses-dir", type=Path,
+                        help="also write each seed's poses there (poses_seed<N>.txt, as the relocalize stage "
+                             "writes them: compare_poses.py reads them)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. scene.name=... data_dir=...")
     args = parser.parse_args()
     script_logging()
@@ -85,6 +90,11 @@ def main() -> None:
         summary, _ = evaluate_poses(scene, estimates, stats, median_depth)
         per_seed[str(seed)] = summary
         failures[str(seed)] = {n: p.why for n, p in poses.items() if p.why}
+        if args.poses_dir is not None:
+            names = sorted(estimates)
+            write_poses_txt(args.poses_dir / f"poses_seed{seed}.txt", names,
+                            np.array([estimates[n][0] for n in names]).reshape(-1, 3, 3),
+                            np.array([estimates[n][1] for n in names]).reshape(-1, 3))
     mean, std = mean_std(list(per_seed.values()))
     report = {"method": "sift_pnp", "scene": scene.name, "seeds": args.seeds, "model": args.model,
               "sift_max_features": opts.max_num_features, "mean": mean, "std": std, "per_seed": per_seed,
