@@ -97,6 +97,33 @@ def test_scripts_compose_the_stage_config_with_its_validation():
         compose_for_script("office", ["model.encoder=foo"])
 
 
+@pytest.mark.parametrize("scene, overrides, message", [
+    ("nosuch", [], r"config scene=nosuch: .*'scene/nosuch' \(available options in 'scene': .*bird, mini, office\)$"),
+    ("office", ["model=nosuch"], r"'model/nosuch' \(available options in 'model': .*small.*\)$"),
+    ("office", ["relocalize.nokey=1"], r"config scene=office relocalize.nokey=1: Could not override"),
+    ("office", ["relocalize.refine=["], r"config scene=office relocalize.refine=\[: "),
+])
+def test_a_script_asked_for_a_config_that_is_not_there_gets_one_line_naming_it(scene, overrides, message):
+    from usvc.core.errors import UsvcError
+    from usvc.pipeline.config import compose_for_script
+
+    with pytest.raises(UsvcError, match=message) as err:
+        compose_for_script(scene, overrides)
+    assert "\n" not in str(err.value)
+
+
+def test_a_benchmark_given_bad_input_says_so_in_one_line():
+    proc = subprocess.run([sys.executable, "benchmarks/compare_poses.py", "--scene", "nosuch", "--a", "a.txt",
+                           "--b", "b.txt"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines()[-1].startswith("compare_poses: config scene=nosuch:")
+    assert "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "benchmarks/baseline_sift.py", "--scene", "nosuch"], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("baseline_sift.py: config scene=nosuch:")
+
+
 def test_shipped_ace_encoders_work_at_their_pretraining_scale():
     """The shipped encoders learned from 320x240 renders: maps of larger photos are made at a 240 px
     short side unless asked otherwise; XFeat keeps the photos' own size."""

@@ -173,9 +173,23 @@ def compose_for_script(scene: str, overrides: list[str]) -> Any:
     """The config a stage would see for ``scene=<scene> <overrides>``, for scripts outside Hydra's
     entry points (benchmarks): every group typed, the same validation."""
     from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
 
     register_configs()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        cfg = compose(config_name="config", overrides=[f"scene={scene}", *overrides])
+    asked = [f"scene={scene}", *overrides]
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+            cfg = compose(config_name="config", overrides=asked)
+    except HydraException as e:  # an unknown scene or option, a malformed override: one line naming it
+        lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+        why = lines[0] if lines else type(e).__name__
+        if len(lines) > 1 and lines[1].startswith("Available options"):  # an unknown scene or option: the choices
+            choices = []
+            for line in lines[2:]:
+                if line.startswith("Config search path"):
+                    break
+                choices.append(line)
+            why += f" ({lines[1].rstrip(':').lower()}: {', '.join(choices[:20])})"
+        raise UsvcError(f"config {' '.join(asked)}: {why}") from None
     validate(cfg)
     return cfg
