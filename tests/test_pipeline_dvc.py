@@ -23,7 +23,10 @@ pytestmark = pytest.mark.slow
 
 # One thread in every stage (a ceiling for threads=auto): the same bits in the fixture's run and in
 # the forced rerun below, whatever else runs beside the tests.
-ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+# dvc.yaml's commands say `python`: the interpreter running the tests (its environment's packages), whether
+# or not that environment is activated.
+ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])}
 
 
 def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
