@@ -22,7 +22,6 @@ sys.path.insert(0, str(REPO))
 
 from _report import write_report  # noqa: E402
 
-from usvc.core.errors import UsvcError  # noqa: E402
 from usvc.core.poses_file import read_poses_txt  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
 from usvc.metrics.paired import paired_comparison, query_errors  # noqa: E402
@@ -48,17 +47,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the resampling's seed")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. data_dir=...")
     args = parser.parse_args()
-    script_logging()
-    try:
-        cfg = compose_for_script(args.scene, args.overrides)
-        paths = scene_paths(cfg)
-        scene = read_scene_h5(paths.scene_file)
-        median_depth = read_median_depth(paths.tracks_file)
-        a = query_errors(scene, read_poses_txt(args.a), str(args.a))
-        b = query_errors(scene, read_poses_txt(args.b), str(args.b))
-        result = paired_comparison(a, b, scene.metric_scale, median_depth, args.resamples, args.level, args.seed)
-    except UsvcError as e:
-        raise SystemExit(f"compare_poses: {e}") from None
+    script_logging()  # bad input (a UsvcError) then ends the script in one line
+    cfg = compose_for_script(args.scene, args.overrides)
+    paths = scene_paths(cfg)
+    scene = read_scene_h5(paths.scene_file)
+    median_depth = read_median_depth(paths.tracks_file)
+    a = query_errors(scene, read_poses_txt(args.a), str(args.a))
+    b = query_errors(scene, read_poses_txt(args.b), str(args.b))
+    result = paired_comparison(a, b, scene.metric_scale, median_depth, args.resamples, args.level, args.seed)
     report = {"scene": scene.name, "a": {"name": args.a_name, "poses": str(args.a)},
               "b": {"name": args.b_name, "poses": str(args.b)}, **result}
     print(f"{scene.name}: {args.a_name} (a) against {args.b_name} (b), {result['queries']} queries, "

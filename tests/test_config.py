@@ -116,7 +116,7 @@ def test_a_benchmark_given_bad_input_says_so_in_one_line():
     proc = subprocess.run([sys.executable, "benchmarks/compare_poses.py", "--scene", "nosuch", "--a", "a.txt",
                            "--b", "b.txt"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1
-    assert proc.stderr.strip().splitlines()[-1].startswith("compare_poses: config scene=nosuch:")
+    assert proc.stderr.strip().splitlines()[-1].startswith("compare_poses.py: config scene=nosuch:")
     assert "Traceback" not in proc.stderr
     proc = subprocess.run([sys.executable, "benchmarks/baseline_sift.py", "--scene", "nosuch"], cwd=REPO,
                           capture_output=True, text=True, timeout=300)

@@ -29,7 +29,8 @@ PER_QUERY_COLUMNS: tuple[str, ...] = (
 )
 
 
-def _check_names(kind: str, names: Any, queries: set[str], scene: str) -> None:
+def check_query_names(kind: str, names: Any, queries: set[str], scene: str) -> None:
+    """Refuse poses (or statistics) of images that are not the scene's test queries, naming the first."""
     unknown = sorted(set(names) - queries)
     if unknown:
         more = f" (and {len(unknown) - 1} more)" if len(unknown) > 1 else ""
@@ -53,8 +54,8 @@ def evaluate_poses(
     if not scene.has_poses:
         raise UsvcError(f"scene {scene.name!r} has no ground-truth poses to evaluate against")
     names = {f.name for f in queries}
-    _check_names("poses file", estimates, names, scene.name)
-    _check_names("query statistics", query_stats, names, scene.name)
+    check_query_names("poses file", estimates, names, scene.name)
+    check_query_names("query statistics", query_stats, names, scene.name)
     if not query_stats:
         raise UsvcError(f"no query statistics for scene {scene.name!r}: cannot report time per query")
 

@@ -24,6 +24,7 @@ import numpy as np
 from usvc.core.errors import UsvcError
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error
 from usvc.core.scene import Scene
+from usvc.metrics.evaluate import check_query_names
 
 # The figures compared: every share and median `summarize` reports, where the scene has them
 FIGURES = ("acc_10cm_5deg", "acc_5cm_5deg", "acc_2cm_2deg", "acc_1cm_1deg", "acc_rel_5cm_5deg", "acc_rel_2cm_2deg",
@@ -50,18 +51,13 @@ def query_errors(scene: Scene, estimates: Mapping[str, tuple[np.ndarray, np.ndar
     queries = scene.split("test")
     if not scene.has_poses:
         raise UsvcError(f"scene {scene.name!r} has no ground-truth poses to compare against")
-    names = {f.name for f in queries}
-    stray = sorted(set(estimates) - names)
-    if stray:
-        raise UsvcError(f"{what}: {len(stray)} poses of images that are not test queries of scene {scene.name!r} "
-                        f"(first: {stray[0]!r}): the poses of another scene or split?")
-    rot = np.full(len(queries), np.inf)
-    trans = np.full(len(queries), np.inf)
-    for i, f in enumerate(queries):
-        if f.name in estimates:
-            R, t = estimates[f.name]
-            rot[i] = rotation_error_deg(R, f.R)
-            trans[i] = translation_error(R, t, f.R, f.t)
+    check_query_names(what, estimates, {f.name for f in queries}, scene.name)
+    has = np.array([f.name in estimates for f in queries])
+    R = np.stack([estimates[f.name][0] if f.name in estimates else np.eye(3) for f in queries])
+    t = np.stack([estimates[f.name][1] if f.name in estimates else np.zeros(3) for f in queries])
+    R_gt, t_gt = np.stack([f.R for f in queries]), np.stack([f.t for f in queries])
+    rot = np.where(has, rotation_error_deg(R, R_gt), np.inf)
+    trans = np.where(has, translation_error(R, t, R_gt, t_gt), np.inf)
     rot[~np.isfinite(rot)] = np.inf
     trans[~np.isfinite(trans)] = np.inf
     return QueryErrors(tuple(f.name for f in queries), rot, trans)
