@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
+from conftest import REPO
+from test_metrics_stage import N_QUERIES, _exact, inputs  # noqa: F401  (inputs: the stage's fixture)
+from test_metrics_stage import _scene as stage_scene
 
 from usvc.core.errors import UsvcError
+from usvc.core.poses_file import write_poses_txt
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.metrics.paired import QueryErrors, paired_comparison, query_errors, sign_test_p
 
@@ -99,3 +108,31 @@ def test_query_errors_follow_the_split_and_refuse_poses_of_other_images():
     assert list(err.failed) == [False, True, False]
     with pytest.raises(UsvcError, match="poses.txt has a pose for 'train0.png', which is not a test query of scene 'toy'"):
         query_errors(scene, {"train0.png": (np.eye(3), np.zeros(3))}, "poses.txt")
+
+
+@pytest.mark.slow
+def test_compare_poses_pairs_two_poses_files_of_the_scene(inputs):  # noqa: F811 (the imported fixture)
+    """benchmarks/compare_poses.py on the stage's inputs: the relocalized poses (one query missing,
+    one moved 3 cm) against the exact ones: the missing and the moved query are where the exact
+    file is the closer, the rest are equal, and the shares differ by exactly those queries."""
+    scene = stage_scene(metric_scale=1.0)
+    exact = _exact(scene)
+    names = sorted(exact)
+    write_poses_txt(inputs / "exact.txt", names, np.stack([exact[n][0] for n in names]),
+                    np.stack([exact[n][1] for n in names]))
+    env = {**os.environ, "USVC_BENCHMARK_DIR": str(inputs / "reports"), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, "benchmarks/compare_poses.py", "--scene", "mini", "--a",
+         str(inputs / "data/mini/relocalize/poses.txt"), "--b", str(inputs / "exact.txt"), "--a-name", "usvc",
+         "--b-name", "exact", "--resamples", "300", f"data_dir={inputs / 'data'}"],
+        cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads((inputs / "reports" / "compare_poses_mini_usvc_vs_exact.json").read_text())
+    n = N_QUERIES
+    assert report["queries"] == n and report["failed"] == {"a": 1, "b": 0}
+    assert report["per_query"]["b_closer"] == 2 and report["per_query"]["a_closer"] == 0
+    assert report["per_query"]["equal"] == n - 2
+    assert report["figures"]["acc_5cm_5deg"]["difference"] == pytest.approx(-1 / n)
+    assert report["figures"]["acc_2cm_2deg"]["difference"] == pytest.approx(-2 / n)
+    lo, hi = report["figures"]["acc_2cm_2deg"]["interval"]
+    assert lo <= -2 / n <= hi <= 0
