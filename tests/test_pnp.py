@@ -103,3 +103,46 @@ def test_malformed_inputs_raise():
         solve_pnp(uv[:5], bad, PINHOLE)
     with pytest.raises(UsvcError, match="backend"):
         solve_pnp(uv, xw, PINHOLE, backend="magic")
+
+
+def test_a_low_trial_floor_leaves_the_adaptive_stop_in_charge():
+    # min_trials only lowers the floor of RANSAC's search: where inliers are few (80 % outliers
+    # here, with pixel noise) the adaptive count still runs the trials the confidence needs.
+    uv, xw, outlier = make_correspondences(PINHOLE, n=500, outlier_ratio=0.8, seed=11)
+    uv = uv + np.random.default_rng(2).normal(0.0, 0.5, uv.shape)
+    res = solve_pnp(uv, xw, PINHOLE, max_error_px=4.0, backend="pycolmap", min_trials=1)
+    assert res.success
+    assert rotation_error_deg(res.R, R_TRUE) < 0.1
+    assert res.inlier_mask[outlier].sum() <= 2 and res.inlier_mask[~outlier].mean() > 0.95
+    # on clean correspondences the floor only shortens the search: the same refined pose
+    clean_uv, clean_xw, _ = make_correspondences(PINHOLE, n=500, outlier_ratio=0.01, seed=12)
+    clean_uv = clean_uv + np.random.default_rng(3).normal(0.0, 0.5, clean_uv.shape)
+    low = solve_pnp(clean_uv, clean_xw, PINHOLE, max_error_px=4.0, backend="pycolmap", min_trials=5)
+    full = solve_pnp(clean_uv, clean_xw, PINHOLE, max_error_px=4.0, backend="pycolmap")
+    np.testing.assert_array_equal(low.inlier_mask, full.inlier_mask)
+    assert rotation_error_deg(low.R, full.R) < 1e-6 and translation_error(low.R, low.t, full.R, full.t) < 1e-7
+
+
+def test_min_trials_is_pycolmaps_and_bounded():
+    uv, xw, _ = make_correspondences(PINHOLE, n=50, outlier_ratio=0.0)
+    with pytest.raises(UsvcError, match="min_trials=10: only the pycolmap backend"):
+        solve_pnp(uv, xw, PINHOLE, backend="opencv", min_trials=10)
+    with pytest.raises(UsvcError, match="min_trials=0"):
+        solve_pnp(uv, xw, PINHOLE, backend="pycolmap", min_trials=0)
+
+
+def test_feature_pnps_use_the_lower_trial_floor(monkeypatch):
+    from usvc.relocalize import feature_refinement as F
+
+    seen = {}
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return solve_pnp(*args, **kwargs)
+
+    monkeypatch.setattr(F, "solve_pnp", spy)
+    uv, xw, _ = make_correspondences(PINHOLE, n=100, outlier_ratio=0.1)
+    opts = F.FeatureMatchOptions(radii_px=(8.0,), ratio=0.8, max_error_px=4.0, min_inliers=20, view_margin_deg=45.0)
+    res = F._pnp(uv, xw, PINHOLE, opts, seed=0)
+    assert res is not None and rotation_error_deg(res.R, R_TRUE) < 1e-3
+    assert seen["backend"] == "pycolmap" and seen["min_trials"] == F.FEATURE_MIN_TRIALS < 100

@@ -43,6 +43,11 @@ _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
 _DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product
 _DENSE_PAIR_SHARE = 16  # guided matching: one product when the pairs in reach are >= 1/16 of its entries
+# The fewest LO-RANSAC trials of a feature PnP (COLMAP's default floor: 100). Guided matches are
+# nearly all inliers (mini's ~1,000 a pass: 99 %), where RANSAC's adaptive stop needs a handful of
+# trials and the floor made every pass run 100, each scored on every match: 20 took ~4 ms off each
+# PnP (of ~13) with the same poses (docs/speed.md). Where inliers are few the adaptive count rules.
+FEATURE_MIN_TRIALS = 20
 
 
 @dataclass(frozen=True)
@@ -227,7 +232,7 @@ def _pnp(uv: np.ndarray, xyz: np.ndarray, camera: Camera, opts: FeatureMatchOpti
     if len(uv) < max(opts.min_inliers, 4):
         return None
     res = solve_pnp(uv, xyz, camera, max_error_px=opts.max_error_px, seed=seed, min_inliers=opts.min_inliers,
-                    backend="pycolmap")
+                    backend="pycolmap", min_trials=FEATURE_MIN_TRIALS)
     return res if res.success else None
 
 

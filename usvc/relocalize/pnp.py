@@ -169,10 +169,12 @@ def in_image(camera: Camera, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
 
 
 def _solve_pycolmap(
-    p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int
+    p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int, min_trials: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     cam = _pycolmap_camera(camera)
     est = absolute_pose_options(max_error_px, seed)
+    if min_trials is not None:
+        est.ransac.min_num_trials = int(min_trials)
     ref = pycolmap.AbsolutePoseRefinementOptions()
     res = pycolmap.estimate_and_refine_absolute_pose(p2, p3, cam, est, ref)
     if res is None:
@@ -218,8 +220,14 @@ def solve_pnp(
     seed: int = 0,
     min_inliers: int = 10,
     backend: str = "opencv",
+    min_trials: int | None = None,
 ) -> PnPResult:
     """Robust world-to-camera pose from (N,2) COLMAP-convention pixels and (N,3) world points.
+
+    `min_trials` ("pycolmap" only; None: COLMAP's 100) is the fewest RANSAC trials before its
+    adaptive stop may end the search: the stop itself (confidence RANSAC_CONFIDENCE at the inlier
+    ratio found so far) still decides where inliers are few, so a lower floor only shortens the
+    search on correspondences that are nearly all inliers.
 
     Non-finite correspondences are dropped first (their inlier flag is False). Too few inliers
     is an ordinary outcome (success False); malformed input raises UsvcError.
@@ -234,6 +242,9 @@ def solve_pnp(
         raise UsvcError(f"PnP max_error_px must be positive, got {max_error_px}")
     if seed < 0:
         raise UsvcError(f"PnP seed must be non-negative for reproducible runs, got {seed}")
+    if min_trials is not None and (backend != "pycolmap" or not 1 <= min_trials <= RANSAC_MAX_TRIALS):
+        raise UsvcError(f"PnP min_trials={min_trials!r}: only the pycolmap backend takes it, "
+                        f"between 1 and {RANSAC_MAX_TRIALS}")
     finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
     n_finite = int(finite.sum())
     if n_finite < 4:
@@ -242,7 +253,7 @@ def solve_pnp(
     start = time.perf_counter()
     if backend == "pycolmap":
         out = _solve_pycolmap(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]), camera,
-                              max_error_px, seed)
+                              max_error_px, seed, min_trials)
     else:
         out = _solve_opencv(p2[finite], p3[finite], camera, max_error_px, seed, min_inliers)
     seconds = time.perf_counter() - start
