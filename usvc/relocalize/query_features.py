@@ -13,10 +13,10 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import pycolmap
 
+from usvc.core import opencv_sift
 from usvc.landmarks.landmark_table import unit_descriptors
 
 
@@ -44,19 +44,6 @@ def _extractor(max_features: int) -> pycolmap.FeatureExtractor:
     return pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
 
 
-# COLMAP's SIFT detector settings, in OpenCV's terms, so that both find the same keypoints: COLMAP's
-# peak threshold (0.02 / 3 octave layers) is OpenCV's contrast threshold / layers, and COLMAP maps
-# the doubled image's pixel x to 2x exactly, which OpenCV does only with precise upscaling (its
-# default upscaling shifts every keypoint by a quarter pixel).
-OPENCV_CONTRAST_THRESHOLD = 0.02
-
-
-@functools.lru_cache(maxsize=4)
-def _opencv_sift(max_features: int) -> cv2.SIFT:
-    return cv2.SIFT_create(nfeatures=max_features, contrastThreshold=OPENCV_CONTRAST_THRESHOLD,
-                           enable_precise_upscale=True)
-
-
 def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "opencv") -> QueryFeatures:
     """SIFT keypoints and unit L1-root descriptors of a uint8 grey image (at most `max_features`)."""
     image = np.ascontiguousarray(gray_u8)
@@ -66,10 +53,5 @@ def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "openc
         return QueryFeatures(uv, unit_descriptors(np.asarray(descriptors.data)).reshape(-1, 128))
     if extractor != "opencv":
         raise ValueError(f"unknown SIFT extractor {extractor!r}")
-    keypoints, descriptors = _opencv_sift(int(max_features)).detectAndCompute(image, None)
-    if descriptors is None or not keypoints:
-        return QueryFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
-    uv = np.array([k.pt for k in keypoints], dtype=np.float64) + 0.5  # OpenCV: pixel centres at integers
-    d = descriptors.astype(np.float32)
-    d /= np.maximum(d.sum(axis=1, keepdims=True), 1e-12)  # L1, then the square root: unit L2 rows
-    return QueryFeatures(uv, np.sqrt(d))
+    keypoints, unit = opencv_sift.detect(image, max_features)
+    return QueryFeatures(opencv_sift.colmap_uv(keypoints), unit)

@@ -17,6 +17,7 @@ import pycolmap
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame
+from usvc.sfm.opencv_extraction import write_opencv_features
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.pair_matching import colmap_matching, exhaustive_pairs, image_names, match_pairs
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
@@ -80,8 +81,14 @@ def register_images(frames: list[Frame], db_path: Path) -> dict[tuple, int]:
 
 def extract(frames: list[Frame], image_dir: Path, db_path: Path, opts: SfmOptions, threads: int) -> None:
     """SIFT into a fresh database whose cameras are the scene's exact intrinsics, on `threads`
-    threads unless sfm.num_threads is set (see colmap_threads)."""
+    threads unless sfm.num_threads is set (see colmap_threads): COLMAP's, or OpenCV's
+    (sfm.extractor=opencv, `opencv_extraction`)."""
     camera_ids = register_images(frames, db_path)
+    if opts.extractor == "opencv":
+        count = colmap_threads(opts, threads)
+        write_opencv_features(db_path, image_dir, sorted(f.name for f in frames), opts.max_num_features,
+                              count if count > 0 else (os.cpu_count() or 1))
+        return
     groups: dict[int, list[str]] = defaultdict(list)
     for f in frames:
         groups[camera_ids[_camera_key(f)]].append(f.name)
