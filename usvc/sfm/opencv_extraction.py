@@ -1,6 +1,6 @@
 """The sfm stage's SIFT with OpenCV (`sfm.extractor=opencv`): each mapping image's keypoints and
-descriptors found as the query finds its own (`usvc.core.opencv_sift`: COLMAP's detector settings,
-L1-root descriptors) and written into the COLMAP database in COLMAP's form, where matching and
+descriptors found with the query's detector and descriptor settings (`usvc.core.opencv_sift`:
+COLMAP's detector settings, L1-root descriptors; grey by OpenCV's BT.601 conversion) and written into the COLMAP database in COLMAP's form, where matching and
 triangulation take them as if COLMAP had extracted them. OpenCV's SIFT is 2.2-3.2x faster than
 COLMAP's on one thread (docs/results.md) and finds ~90 % as many keypoints; the images are
 extracted side by side on `threads` threads (OpenCV releases Python's lock), each image the same
@@ -8,7 +8,6 @@ bits whatever the count."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -27,8 +26,7 @@ def image_features(path: Path, max_features: int) -> tuple[np.ndarray, np.ndarra
     return opencv_sift.colmap_keypoints(keypoints), opencv_sift.colmap_descriptors(unit)
 
 
-def write_opencv_features(db_path: Path, image_dir: Path, names: list[str], max_features: int, threads: int,
-                          progress: Callable[[int], None] | None = None) -> int:
+def write_opencv_features(db_path: Path, image_dir: Path, names: list[str], max_features: int, threads: int) -> int:
     """SIFT of the images `names` (already in the database) into their keypoints and descriptors
     tables; returns the keypoints written. OpenCV's own thread pool is held at one per image."""
     db = pycolmap.Database.open(db_path)
@@ -48,8 +46,6 @@ def write_opencv_features(db_path: Path, image_dir: Path, names: list[str], max_
                     db.write_descriptors(ids[name], pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
                                                                                 descriptors))
                     total += len(keypoints)
-                    if progress is not None:
-                        progress(1)
         finally:
             cv2.setNumThreads(previous)
     finally:
