@@ -174,6 +174,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(json.dumps({k: v for k, v in report.items() if k not in ("table", "answers")}, indent=1))
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
     final = "" if args.final == RelocalizeOptions().features_final else f"_final_{args.final}"
     write_report("confidence_" + "+".join(scene_of(s) for s in args.scene_dir) + final, report)

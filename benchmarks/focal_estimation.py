@@ -61,6 +61,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
     write_report(f"focal_estimation_{scene_of(args.scene_dir)}", report)
 

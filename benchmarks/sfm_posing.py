@@ -124,6 +124,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
     write_report(f"sfm_posing_{scene_of(args.sfm, 'prepared')}", report)
 

@@ -22,7 +22,7 @@ class ModelOptions:
     encoder_weights: Optional[str] = None  # encoder file (a bare name: one shipped in usvc/weights); null = the encoder shipped for this width
     head_width: int = 512  # channels of the regression head's layers
     head_blocks: int = 1  # residual blocks after the first
-    max_short_side: int = 240  # larger images are scaled down to this short side (the scale the encoder was pretrained at); 0 = never; buffer.short_side wins when set
+    max_short_side: int = 192  # larger images are scaled down to this short side (the shipped encoders learned at 240: 192 gives each cell more context); 0 = never; buffer.short_side wins when set
 
     def problems(self) -> list[str]:
         out = one_of(self, "encoder", ENCODERS) + positive(self, "encoder_width", "head_width")
