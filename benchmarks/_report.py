@@ -73,6 +73,12 @@ def _plain(value):
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
+def write_out(path: Path, text: str) -> None:
+    """A script's own copy of its figures (its --out), into `path`'s folder, made if it is missing."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
 def write_report(name: str, result: dict, *, argv: Sequence[str] | None = None,
                  directory: Path | None = None) -> Path:
     """Write `result` to <directory>/<name>.json (default results/benchmarks), atomically.

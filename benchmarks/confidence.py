@@ -34,7 +34,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _report import scene_of, write_report  # noqa: E402
+from _report import scene_of, write_out, write_report  # noqa: E402
 
 from usvc.core.images import read_image_bgr  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, translation_error  # noqa: E402
@@ -174,8 +174,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(json.dumps({k: v for k, v in report.items() if k not in ("table", "answers")}, indent=1))
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_out(args.out, text + "\n")
     final = "" if args.final == RelocalizeOptions().features_final else f"_final_{args.final}"
     write_report("confidence_" + "+".join(scene_of(s) for s in args.scene_dir) + final, report)
 

@@ -25,7 +25,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _report import write_report  # noqa: E402
+from _report import write_out, write_report  # noqa: E402
 
 from usvc.analysis.diagnosis import observations_of, track_retrieval, view_fit_at  # noqa: E402
 from usvc.buffer.buffer_file import read_buffer_attrs, read_buffer_image_names  # noqa: E402
@@ -113,8 +113,7 @@ def main() -> None:
             report[name] = {k: v for k, v in (data.get("mean", data)).items()
                             if isinstance(v, (int, float)) and not k.endswith("_curve")}
     out = args.out or Path(cfg.results_dir) / cfg.scene.name / "diagnosis.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
+    write_out(out, json.dumps(report, indent=2) + "\n")
     print(json.dumps({k: report[k] for k in ("fit", "track_retrieval", "track_retrieval_heldout")}, indent=1))
     write_report(f"diagnose_map_{cfg.scene.name}", report)
 

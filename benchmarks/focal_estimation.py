@@ -21,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _report import scene_of, write_report  # noqa: E402
+from _report import scene_of, write_out, write_report  # noqa: E402
 
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
 from usvc.core.scene_file import read_scene_h5  # noqa: E402
@@ -61,8 +61,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_out(args.out, text + "\n")
     write_report(f"focal_estimation_{scene_of(args.scene_dir)}", report)
 
 

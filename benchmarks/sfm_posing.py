@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _report import scene_of, write_report  # noqa: E402
+from _report import scene_of, write_out, write_report  # noqa: E402
 
 from usvc.core.errors import UsvcError  # noqa: E402
 from usvc.core.pose_errors import rotation_error_deg, summarize, translation_error  # noqa: E402
@@ -124,8 +124,7 @@ def main() -> None:
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_out(args.out, text + "\n")
     write_report(f"sfm_posing_{scene_of(args.sfm, 'prepared')}", report)
 
 

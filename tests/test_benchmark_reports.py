@@ -42,6 +42,14 @@ def test_writes_valid_json_with_command_and_context(tmp_path):
     assert [p.name for p in out.parent.iterdir()] == ["demo_mini.json"]  # no temporary left behind
 
 
+def test_a_scripts_own_copy_goes_into_a_folder_made_for_it(tmp_path):
+    out = tmp_path / "not" / "yet" / "there.json"
+    report.write_out(out, '{"a": 1}\n')
+    assert json.loads(out.read_text()) == {"a": 1}
+    report.write_out(out, '{"a": 2}\n')  # an existing folder and file: replaced
+    assert json.loads(out.read_text()) == {"a": 2}
+
+
 def test_default_directory_is_results_benchmarks():
     assert report.REPORT_DIR == REPO / "results" / "benchmarks"
 
