@@ -175,13 +175,17 @@ def _reference_global(lm_desc, feats, ratio):
 CUDA_MARKS = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")]
 
 
-# dense_share 0: always the pairs' own descriptors; 10**9: always one product. device: the products
-# with numpy (None, the CPU default) or torch on that device (`usvc.relocalize.device_matching`)
-@pytest.mark.parametrize("dense_share,device", [(0, None), (10**9, None), (10**9, "cpu"),
-                                                      pytest.param(10**9, "cuda", marks=CUDA_MARKS)])
-def test_guided_and_global_matching_are_their_definitions(dense_share: int, device: str | None, monkeypatch):
-    from usvc.relocalize import device_matching, feature_refinement
+# tile_cost 0: never tiles; 10**9: tiles wherever the CPU matches (device None). dense_share 0: the
+# pairs' own descriptors; 10**9: one product on the device. device: the products with numpy (None,
+# the CPU default) or torch on that device (`usvc.relocalize.device_matching`)
+@pytest.mark.parametrize("tile_cost,dense_share,device", [(0, 0, None), (10**9, 0, None), (0, 10**9, "cpu"),
+                                                           pytest.param(0, 10**9, "cuda", marks=CUDA_MARKS)])
+def test_guided_and_global_matching_are_their_definitions(tile_cost: float, dense_share: int, device: str | None,
+                                                          monkeypatch):
+    from usvc.relocalize import device_matching, feature_refinement, tiled_matching
+    monkeypatch.setattr(feature_refinement, "_TILE_PAIR_COST", tile_cost)
     monkeypatch.setattr(feature_refinement, "_DENSE_PAIR_SHARE", dense_share)
+    monkeypatch.setattr(tiled_matching, "MAX_TILES", 12)  # tiles wider than the smaller radii
     monkeypatch.setattr(feature_refinement, "_CHUNK", 96)  # several blocks of landmarks
     monkeypatch.setattr(device_matching, "_CHUNK_ENTRIES", 96 * 700)  # the same on a device
     monkeypatch.setattr(feature_refinement, "_PAIRS", 500)  # several blocks of pairs

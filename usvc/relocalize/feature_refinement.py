@@ -31,6 +31,7 @@ from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.pnp import in_image, project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
 from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
 
 log = logging.getLogger(__name__)
@@ -41,8 +42,12 @@ log = logging.getLogger(__name__)
 VERIFIED_MAX_ERROR_PX = 4.0
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
-_DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product
-_DENSE_PAIR_SHARE = 16  # guided matching: one product when the pairs in reach are >= 1/16 of its entries
+_DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product on a device
+_DENSE_PAIR_SHARE = 16  # guided matching on a device: one product when the pairs in reach are >= 1/16 of its entries
+# Guided matching on the CPU: a pair in reach compared on its own (kd-tree, gathers, segmented maxima)
+# costs about as much as this many entries of a tile's product (`tiled_matching`); tiles where
+# they compute fewer such costs (mini at 640 x 480: its first pass 44 -> 12 ms, second 15 -> 10 ms)
+_TILE_PAIR_COST = 40.0
 # The fewest LO-RANSAC trials of a feature PnP (COLMAP's default floor: 100). Guided matches are
 # nearly all inliers (mini's ~1,000 a pass: 99 %), where RANSAC's adaptive stop needs a handful of
 # trials and the floor made every pass run 100, each scored on every match: 20 took ~4 ms off each
@@ -153,28 +158,27 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     each landmark's nearest keypoint by descriptor among those within the radius (the first on
     ties), Lowe's ratio test against the second nearest there, one landmark per keypoint.
 
-    A kd-tree lists the (landmark, keypoint) pairs within the radius. Where they are many (a wide
-    radius), one landmarks x keypoints product gives every similarity and the pairs outside the
-    radius are masked; where they are few, only the pairs' descriptors are compared, and a segmented
-    maximum over each landmark's pairs finds its nearest two. With a torch `device` the product and
-    its masked reduction run there (`device_matching`)."""
+    On the CPU, where the pairs in reach are many (a wide radius), landmarks and keypoints are
+    binned into tiles and each tile's landmarks compared with the keypoints around it
+    (`tiled_matching`). Otherwise a kd-tree lists the pairs within the radius: where they are
+    few, only the pairs' descriptors are compared, and a segmented maximum over each landmark's
+    pairs finds its nearest two; with a torch `device` and many pairs, one landmarks x keypoints
+    product there gives every similarity, the pairs outside the radius masked (`device_matching`)."""
     empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(lm_uv) == 0 or len(feats) == 0:
         return empty
+    if device is None and tiles_pay(lm_uv, feats.uv, radius, _TILE_PAIR_COST):
+        first, s1, s2 = row_best_two_within(lm_uv, lm_desc, feats.uv, feats.descriptor, radius)
+        ok, d1 = _ratio_test(s1, s2, ratio)
+        rows = np.flatnonzero(ok)
+        return _one_to_one(rows, first[rows], d1[rows])
     pairs = cKDTree(lm_uv).sparse_distance_matrix(cKDTree(feats.uv), radius, output_type="ndarray")
     if len(pairs) == 0:
         return empty
     lm, kp = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     cells = len(lm_uv) * len(feats)
-    if cells <= _DENSE_SIMILARITY and len(lm) * _DENSE_PAIR_SHARE >= cells:
-        if device is not None:
-            first, s1, s2 = masked_row_best_two(lm_desc, feats.descriptor, lm, kp, device)
-        else:
-            sim = lm_desc @ feats.descriptor.T  # every similarity at once, then the radius as a mask
-            within = lm * sim.shape[1] + kp  # flat indices: 1-D take and put, far cheaper than 2-D fancy indexing
-            masked = np.full_like(sim, -np.inf)
-            np.put(masked, within, np.take(sim, within))
-            first, s1, s2 = _row_best_two(masked)
+    if device is not None and cells <= _DENSE_SIMILARITY and len(lm) * _DENSE_PAIR_SHARE >= cells:
+        first, s1, s2 = masked_row_best_two(lm_desc, feats.descriptor, lm, kp, device)
         ok, d1 = _ratio_test(s1, s2, ratio)  # a landmark with no keypoint in reach has s1 = -inf: fails
         rows = np.flatnonzero(ok)
         return _one_to_one(rows, first[rows], d1[rows])
