@@ -215,10 +215,12 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float,
         best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
         best_i = np.zeros(k, dtype=np.int64)
         lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
-        for start in range(0, len(lm_desc), _CHUNK):
-            sim = feats.descriptor @ lm_desc[start:start + _CHUNK].T  # (K, chunk): per keypoint along rows
+        block = np.empty(k * min(_CHUNK, len(lm_desc)), dtype=np.float32)  # one block's products, reused:
+        for start in range(0, len(lm_desc), _CHUNK):  # a fresh multi-MB array per block costs its page faults
+            chunk = lm_desc[start:start + _CHUNK]
+            sim = np.matmul(feats.descriptor, chunk.T, out=block[:k * len(chunk)].reshape(k, len(chunk)))
             lm_max[start:start + sim.shape[1]] = sim.max(axis=0)
-            first, s1, s2 = _row_best_two(sim)
+            first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
             best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
             cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
             cand.sort(axis=1)

@@ -15,16 +15,12 @@ import numpy as np
 MAX_TILES = 48  # tiles across the points' extent at the most: a tile costs ~10 numpy calls, an entry ~15 ns
 
 
-def _extent(lm_uv: np.ndarray, kp_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The lower corner and the size of the box around both point sets."""
+def _tiling(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The lower corner and the size of the box around both point sets, and the tiles' side: the
+    radius, or wider where that would make more than MAX_TILES tiles."""
     lo = np.minimum(lm_uv.min(axis=0), kp_uv.min(axis=0))
-    return lo, np.maximum(lm_uv.max(axis=0), kp_uv.max(axis=0)) - lo
-
-
-def tile_size(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float) -> float:
-    """The tiles' side: the radius, or wider where that would make more than MAX_TILES tiles."""
-    _, span = _extent(lm_uv, kp_uv)
-    return max(float(radius), float(np.sqrt(max(span[0] * span[1], 1e-12) / MAX_TILES)))
+    span = np.maximum(lm_uv.max(axis=0), kp_uv.max(axis=0)) - lo
+    return lo, span, max(float(radius), float(np.sqrt(max(span[0] * span[1], 1e-12) / MAX_TILES)))
 
 
 def tiles_pay(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float, pair_cost: float) -> bool:
@@ -33,9 +29,8 @@ def tiles_pay(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float, pair_cost: fl
     the cost, against the share of entries the tiles compute (about 9 x tile^2 / area)."""
     if len(lm_uv) == 0 or len(kp_uv) == 0:
         return False
-    _, span = _extent(lm_uv, kp_uv)
+    _, span, tile = _tiling(lm_uv, kp_uv, radius)
     area = max(float(span[0] * span[1]), 1e-12)
-    tile = tile_size(lm_uv, kp_uv, radius)
     reach = 2 * int(np.ceil(radius / tile)) + 1
     return min(1.0, np.pi * radius * radius / area) * pair_cost >= min(1.0, reach * reach * tile * tile / area)
 
@@ -43,8 +38,7 @@ def tiles_pay(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float, pair_cost: fl
 def _blocks(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float) -> list[tuple[np.ndarray, np.ndarray]]:
     """(landmark rows, keypoint rows in increasing order) per tile that holds landmarks: the
     keypoints of the tiles within reach of it."""
-    tile = tile_size(lm_uv, kp_uv, radius)
-    lo, span = _extent(lm_uv, kp_uv)
+    lo, span, tile = _tiling(lm_uv, kp_uv, radius)
     nx, ny = int(span[0] // tile) + 1, int(span[1] // tile) + 1
     reach = int(np.ceil(radius / tile))
 
