@@ -82,3 +82,24 @@ def test_device_pipeline_gives_the_stages_the_device_setting_as_asked(tmp_path, 
         with pytest.raises(RuntimeError, match="first stage"):
             device_pipeline.measure_scene("mini", "cpu", tmp_path, [], {}, [], 1, setting=setting)
         assert seen[-1][0] == "generate" and expected in seen[-1][1]
+
+
+def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked(monkeypatch):
+    """benchmarks/wrong_prior.py: the perturbed pose is turned by exactly the degrees asked about
+    an axis through the camera centre, and its centre moved by exactly the shift asked."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+    from wrong_prior import perturbed_pose
+
+    from usvc.core.geometry import camera_centers
+
+    rng = np.random.default_rng(3)
+    R = Rotation.from_rotvec([0.3, -0.2, 0.9]).as_matrix()
+    t = np.array([0.4, -1.2, 2.5])
+    for degrees, shift in [(0.0, 0.0), (10.0, 0.0), (0.0, 0.7), (120.0, 2.0)]:
+        R2, t2 = perturbed_pose(R, t, degrees, shift, rng)
+        turned = np.degrees(np.arccos(np.clip((np.trace(R2 @ R.T) - 1) / 2, -1, 1)))
+        assert turned == pytest.approx(degrees, abs=1e-6)
+        assert np.linalg.norm(camera_centers(R2, t2) - camera_centers(R, t)) == pytest.approx(shift, abs=1e-9)
+        assert np.allclose(R2 @ R2.T, np.eye(3), atol=1e-12)

@@ -53,6 +53,12 @@ _TILE_PAIR_COST = 40.0
 # trials and the floor made every pass run 100, each scored on every match: 20 took ~4 ms off each
 # PnP (of ~13) with the same poses (docs/speed.md). Where inliers are few the adaptive count rules.
 FEATURE_MIN_TRIALS = 20
+# A guided answer that explains fewer than this share of the matches to every landmark that their
+# own pose (P4Pf) explains was found from a wrong start (a learned pose off by ~10 degrees led bird's
+# guided passes to a pose 6.5 degrees off with 218 inliers, explaining 33 of 76): the matches to
+# every landmark then get their own hypothesis. Right answers explained 0.93-1.01 of them on office,
+# bird and mini, from learned poses right or turned by up to 30 degrees (docs/results.md).
+AGREEMENT = 0.8
 
 
 @dataclass(frozen=True)
@@ -101,6 +107,7 @@ class FeatureResult:
     tried: list[dict] = field(default_factory=list)  # per hypothesis tried: its path and its support
     verified: dict | None = None  # what SIFT + PnP's matching took, when it ran (VerifiedMatches.record)
     verified_seconds: float | None = None  # its time
+    agreement: dict | None = None  # a guided answer checked against the matches to every landmark (refine_by_features)
 
     @property
     def success(self) -> bool:
@@ -372,8 +379,8 @@ def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
                          best.match_landmark, best.why)
     for h in hypotheses:
         best.passes.extend(h.passes)
-    best.tried = [{"path": h.path or h.passes[0]["kind"], "inliers": h.inliers if h.success else 0}
-                  for h in hypotheses if h.passes]
+    best.tried = [{"path": h.path or h.passes[0]["kind"], "inliers": h.inliers if h.success else 0,
+                   **(h.agreement or {})} for h in hypotheses if h.passes]
     if not found:
         best.why = "; ".join(h.why for h in hypotheses if h.why) or "features: no match to the landmarks"
     return best
@@ -383,7 +390,8 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                        R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
                        verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
                        global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                       weak_prior: bool = False, image_descriptors: list[np.ndarray] | None = None) -> FeatureResult:
+                       weak_prior: bool = False, image_descriptors: list[np.ndarray] | None = None,
+                       agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
     from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior,
     or the prior is `weak_prior`: too few of the map's cells agree with it, so the guided passes
@@ -393,7 +401,11 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
     hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors. With
     opts.final "images" and landmarks with observations (`image_descriptors`: their unit descriptors
     per image, computed once per map), a winner from the guided or global path gets `images_pass`
-    (SIFT + PnP's own path, "verified", is that evidence already)."""
+    (SIFT + PnP's own path, "verified", is that evidence already). With `agreement` (how many of the
+    matches to every landmark a result explains, and how many their own pose explains; None when
+    they give no pose), a guided winner that did not compete with them is checked: one that explains
+    fewer than AGREEMENT of what their own pose does competes with the global hypothesis, and the
+    guided hypothesis's record says what the check found."""
     hypotheses = []
     if R0 is not None and t0 is not None:
         hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
@@ -406,6 +418,14 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
         if found is not None:
             hypotheses.append(from_verified(landmarks, lm_desc, feats, camera, found, opts, seed))
     best = best_hypothesis(hypotheses)
+    if best.success and best.path == "guided" and use_global and agreement is not None and len(hypotheses) == 1:
+        agree = agreement(best)
+        if agree is not None:
+            hypotheses[0].agreement = {"global_matches_explained": agree[0], "by_their_own_pose": agree[1]}
+            if agree[0] < AGREEMENT * agree[1]:  # a wrong start: the matches to every landmark get their say
+                hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
+                                              global_pairs() if global_pairs is not None else None))
+            best = best_hypothesis(hypotheses)
     if opts.final == "images" and best.success and best.path != "verified" and landmarks.observations is not None:
         images_pass(best, landmarks, feats, camera, opts, seed, image_descriptors)
     return best

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose, focal_log_std
+from usvc.core.absolute_pose import estimate_focal, focal_log_std
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
@@ -132,8 +132,7 @@ class FocalVerdicts:
         camera, opts = evidence.camera, evidence.opts
         given = float(np.sqrt(camera.focal[0] * camera.focal[1]))
         band = 1.0 + tol
-        for uv, xyz in evidence.unguided(global_matches=not verified, verified=verified):
-            found = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+        for uv, xyz, found in evidence.focal_poses(global_matches=not verified, verified=verified):
             if found is None or int(found.inlier_mask.sum()) < opts.min_inliers:
                 continue
             ratio = float(found.camera.params[0]) / given

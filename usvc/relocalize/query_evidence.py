@@ -1,7 +1,8 @@
 """A query photo's correspondences to the landmarks that do not depend on its intrinsics, computed
 once per query and only when asked for: the matches to every landmark's one descriptor (cheap),
 then SIFT + PnP's verified matches (`verified_matching`: the expensive fallback). The relocalizer's
-hypotheses and its focal-length checks (P4Pf) share them."""
+hypotheses and its focal-length checks (P4Pf) share them, and the P4Pf on the matches to every
+landmark also tells whether a guided answer agrees with them (`QueryEvidence.agreement`)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from usvc.core.absolute_pose import FocalPose, estimate_focal_pose
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
+from usvc.relocalize.pnp import reprojection_inliers
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import VerifiedMatches, verified_matches
 
@@ -33,6 +36,7 @@ class QueryEvidence:
         self._global_source = global_pairs
         self.focal_estimated = False  # whether P4Pf on these correspondences gave the photo's focal length
         self._verified: VerifiedMatches | None = None
+        self._global_focal: tuple[FocalPose | None] | None = None
 
     def global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """(landmark rows, keypoint rows) of the matches to every landmark."""
@@ -40,6 +44,27 @@ class QueryEvidence:
             self._global = self._global_source() if self._global_source is not None \
                 else global_matches(self.landmark_desc, self.feats, self.opts.ratio, self.opts.device)
         return self._global
+
+    def global_focal_pose(self) -> FocalPose | None:
+        """P4Pf (pose and focal length) on the matches to every landmark, found once: the features'
+        focal verdict and the agreement check both read it."""
+        if self._global_focal is None:
+            li, ki = self.global_pairs()
+            self._global_focal = (estimate_focal_pose(self.feats.uv[ki], self.landmarks.xyz[li], self.camera.width,
+                                                      self.camera.height, self.opts.max_error_px, self.seed),)
+        return self._global_focal[0]
+
+    def agreement(self, R: np.ndarray, t: np.ndarray, camera: Camera) -> tuple[int, int] | None:
+        """(how many of the matches to every landmark the pose (R, t) of `camera` explains within
+        the features' PnP threshold, how many their own pose explains: P4Pf's inliers), or None when
+        those matches give no pose with min_inliers. An answer that explains far fewer than their
+        own pose does was found from a wrong start."""
+        found = self.global_focal_pose() if self.use_global else None
+        if found is None or int(found.inlier_mask.sum()) < self.opts.min_inliers:
+            return None
+        li, ki = self.global_pairs()
+        explained = reprojection_inliers(camera, self.feats.uv[ki], self.landmarks.xyz[li], R, t, self.opts.max_error_px)
+        return int(explained.sum()), int(found.inlier_mask.sum())
 
     def verified(self) -> VerifiedMatches | None:
         """SIFT + PnP's evidence (None for landmarks without observations)."""
@@ -56,11 +81,14 @@ class QueryEvidence:
     def verified_seconds(self) -> float | None:
         return None if self._verified is None else self._verified.seconds
 
-    def unguided(self, global_matches: bool = True, verified: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(uv, xyz) of the global matches (unless not use_global), then of the verified ones."""
+    def focal_poses(self, global_matches: bool = True,
+                    verified: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray, FocalPose | None]]:
+        """(uv, xyz, P4Pf on them) of the global matches (unless not use_global; their P4Pf found
+        once, `global_focal_pose`), then of the verified ones."""
         if global_matches and self.use_global:
             li, ki = self.global_pairs()
-            yield self.feats.uv[ki], self.landmarks.xyz[li]
+            yield self.feats.uv[ki], self.landmarks.xyz[li], self.global_focal_pose()
         found = self.verified() if verified else None
         if found is not None:
-            yield found.uv, found.xyz
+            yield found.uv, found.xyz, estimate_focal_pose(found.uv, found.xyz, self.camera.width, self.camera.height,
+                                                           self.opts.max_error_px, self.seed)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from usvc.core.absolute_pose import estimate_focal, estimate_focal_pose
+from usvc.core.absolute_pose import estimate_focal
 from usvc.core.errors import UsvcError
 from usvc.core.images import Photo, read_photo
 from usvc.core.options import check
@@ -427,8 +427,7 @@ class Relocalizer(FocalVerdicts):
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is
             verdict = Job(self._feature_focal_verdict, evidence, source)  # found beside the guided passes
         if not check_focal:
-            for uv, xyz in evidence.unguided():
-                fp = estimate_focal_pose(uv, xyz, camera.width, camera.height, opts.max_error_px, self.seed)
+            for uv, xyz, fp in evidence.focal_poses():
                 if fp is None or int(fp.inlier_mask.sum()) < opts.min_inliers:
                     continue
                 stretched = stretch_verdict(uv, xyz, fp.camera, fp.R, fp.t, opts.max_error_px)
@@ -442,19 +441,26 @@ class Relocalizer(FocalVerdicts):
         # a learned pose that too few cells agree with may lead the guided passes to a wrong pose: the
         # matches to every landmark get their chance too (computed already, for the focal verdict)
         weak = bool(dense.success and dense.num_inliers < self.options.min_confidence * len(dense.inlier_mask))
-        found = self._hypotheses(feats, camera, prior, opts, evidence, weak)
+        agreement = None  # a guided answer checked against the matches to every landmark, where they are found anyway
+        if evidence.use_global and global_pairs is not None:
+            def agreement(result: FeatureResult) -> tuple[int, int] | None:
+                if verdict is not None:  # its P4Pf on those matches is the reference: found once, on its thread
+                    verdict.result()
+                return evidence.agreement(result.R, result.t, camera)
+        found = self._hypotheses(feats, camera, prior, opts, evidence, weak, agreement)
         if not found.success or not check_focal or self.options.focal_tolerance <= 0:
             return found, "", full, evidence
         return found, verdict.result() if verdict is not None else self._feature_focal_verdict(evidence, source), \
             full, evidence
 
     def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
-                    evidence: QueryEvidence, weak_prior: bool = False) -> FeatureResult:
+                    evidence: QueryEvidence, weak_prior: bool = False,
+                    agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None) -> FeatureResult:
         assert self.landmarks is not None
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed, verified=evidence.verified, use_global=evidence.use_global,
                                    global_pairs=evidence.global_pairs, weak_prior=weak_prior,
-                                   image_descriptors=self._observation_desc)
+                                   image_descriptors=self._observation_desc, agreement=agreement)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()
         return found
