@@ -93,23 +93,28 @@ def test_a_prior_outside_the_radius_falls_back_to_matching_every_landmark():
     assert none.success and none.path == "global" and none.passes[0]["kind"] == "global"
 
 
-def test_a_weak_prior_also_gets_the_matches_to_every_landmark(monkeypatch):
-    """A learned pose too few cells agree with may lead the guided passes to a wrong pose with some
-    support: with `weak_prior` the matches to every landmark are tried too and the better-supported
-    pose wins; the verified evidence is not asked for (the guided passes found a pose)."""
+def mislead_the_guided_passes(monkeypatch) -> None:
+    """From now on the guided passes settle on a pose 3 deg off, with a fifth of the support."""
     from usvc.relocalize import feature_refinement as fr
 
-    landmarks, feats = scene()
-    R0, t0 = prior(5.0, 0.10)
-    desc = unit_descriptors(landmarks.descriptor)
     real = fr.from_prior
 
-    def misled(*args, **kwargs):  # the guided passes settle on a pose 3 deg off, with a fifth of the support
+    def misled(*args, **kwargs):
         out = real(*args, **kwargs)
         out.R, out.inliers = prior(3.0, 0.0)[0], out.inliers // 5
         return out
 
     monkeypatch.setattr(fr, "from_prior", misled)
+
+
+def test_a_weak_prior_also_gets_the_matches_to_every_landmark(monkeypatch):
+    """A learned pose too few cells agree with may lead the guided passes to a wrong pose with some
+    support: with `weak_prior` the matches to every landmark are tried too and the better-supported
+    pose wins; the verified evidence is not asked for (the guided passes found a pose)."""
+    landmarks, feats = scene()
+    R0, t0 = prior(5.0, 0.10)
+    desc = unit_descriptors(landmarks.descriptor)
+    mislead_the_guided_passes(monkeypatch)
     asked = []
     strong = refine_by_features(landmarks, desc, feats, CAM, R0, t0, OPTS, verified=lambda: asked.append(1))
     assert strong.path == "guided" and errors(strong.R, strong.t)[0] > 2.0
@@ -146,14 +151,7 @@ def test_a_guided_answer_that_the_matches_to_every_landmark_disagree_with_meets_
     assert right.path == "guided" and errors(right.R, right.t)[0] < 0.1
     assert len(right.tried) == 1 and right.tried[0]["by_their_own_pose"] == reference
     assert right.tried[0]["global_matches_explained"] >= fr.AGREEMENT * reference
-    real = fr.from_prior
-
-    def misled(*args, **kwargs):  # the guided passes settle on a pose 3 deg off, with a fifth of the support
-        out = real(*args, **kwargs)
-        out.R, out.inliers = prior(3.0, 0.0)[0], out.inliers // 5
-        return out
-
-    monkeypatch.setattr(fr, "from_prior", misled)
+    mislead_the_guided_passes(monkeypatch)
     asked = []
     caught = refine_by_features(landmarks, desc, feats, CAM, R0, t0, OPTS, verified=lambda: asked.append(1),
                                 global_pairs=evidence.global_pairs, agreement=check)
