@@ -26,6 +26,7 @@ from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_de
 from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import feature_job as feature_job_module
+from usvc.relocalize import query_evidence as query_evidence_module
 from usvc.relocalize import relocalizer as relocalizer_module
 from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
@@ -299,7 +300,7 @@ def test_without_intrinsics_a_feature_pose_needs_a_focal_length_with_evidence(tm
     from test_refinement import PIXELS
 
     landmarks, feats = scene()
-    monkeypatch.setattr(relocalizer_module, "estimate_focal_pose", lambda *a, **k: None)
+    monkeypatch.setattr(query_evidence_module, "estimate_focal_pose", lambda *a, **k: None)  # every P4Pf of the features
     right = backproject(PIXELS, R_TRUE, T_TRUE)
     path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
     monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: right.reshape(15, 20, 3))

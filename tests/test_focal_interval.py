@@ -61,7 +61,8 @@ class _Verdicts(FocalVerdicts):
 def _evidence(uv: np.ndarray, xyz: np.ndarray, focal: float) -> SimpleNamespace:
     camera = Camera("PINHOLE", W, H, (focal, focal, W / 2, H / 2))
     return SimpleNamespace(camera=camera, opts=SimpleNamespace(max_error_px=4.0, min_inliers=20),
-                           unguided=lambda global_matches=True, verified=False: iter([(uv, xyz)]))
+                           focal_poses=lambda global_matches=True, verified=False: iter(
+                               [(uv, xyz, estimate_focal_pose(uv, xyz, W, H, 4.0, 0))]))
 
 
 @pytest.mark.parametrize("depth_spread", [0.3, 0.08])
