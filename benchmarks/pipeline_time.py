@@ -9,6 +9,11 @@ of `dvc repro`, the scene's headline metrics, and whether the clone's `dvc.lock`
 committed (and which stages' outputs differ when not).
 
     python benchmarks/pipeline_time.py --fresh
+    python benchmarks/pipeline_time.py --fresh --map ../shared/scenes/office --format llff --name officemap
+
+With `--map PHOTOS` it times a real capture's mapping the same way: `usvc map PHOTOS --name NAME
+--format FORMAT` in the fresh clone (the photos copied in, the scene added, its stages run), written
+to `results/benchmarks/fresh_map_<NAME>.json`.
 
 Without `--fresh`, it runs `python -m stages.<stage> scene=<scene> [overrides]` for the mapping
 and query stages in this checkout, each in its own process, and writes
@@ -30,6 +35,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -45,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 from usvc.pipeline.metrics_file import read_metrics  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
 
+HEADLINE = ("median_trans_cm", "median_trans_rel_cm", "median_rot_deg", "n_queries")
 MAPPING = ("prepare", "sfm", "keypoints", "buffer", "train")
 QUERYING = ("relocalize", "metrics")
 
@@ -95,13 +102,38 @@ sys.exit(code)
 """
 
 
+def cpu_model() -> str:
+    """The processor's model name (/proc/cpuinfo), else what `platform` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine(results: Path, scenes: list[str]) -> dict:
+    """What the seconds depend on besides the code: the CPU, whether it runs bf16 natively, and the
+    precision each scene's training ran at (`train.precision: auto` follows the CPU)."""
+    from usvc.core.precision import cpu_has_native_bf16
+
+    precision = {}
+    for scene in scenes:
+        path = ScenePaths(results.parent / "data", results, scene).metrics("train")
+        if path.exists():
+            precision[scene] = json.loads(path.read_text()).get("precision")
+    return {"cpu_model": cpu_model(), "native_bf16": cpu_has_native_bf16(), "train_precision": precision}
+
+
 def _lock_outs(lock: dict) -> dict[str, list[str]]:
     """stage -> the md5 of each of its outputs, from a parsed dvc.lock."""
     return {name: [o.get("md5", "") for o in stage.get("outs", [])] for name, stage in lock.get("stages", {}).items()}
 
 
-def fresh_repro(out: Path) -> None:
-    """Clone HEAD, `dvc repro` in the clone, and record what each stage process cost."""
+def fresh_repro(out: Path, photos: Path | None = None, fmt: str = "images", name: str = "capture") -> None:
+    """Clone HEAD, `dvc repro` in the clone (or, given `photos`, `usvc map photos --name name
+    --format fmt`, which adds the scene and runs its stages), and record what each stage process cost."""
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                             check=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="usvc-fresh-") as tmp:
@@ -114,33 +146,40 @@ def fresh_repro(out: Path) -> None:
         timing = Path(tmp) / "timing.jsonl"
         env = {**os.environ, "PATH": f"{shim_dir}{os.pathsep}{os.environ.get('PATH', '')}",
                "USVC_TIMING_LOG": str(timing)}
+        command = [sys.executable, "-m", "dvc", "repro"]
+        if photos is not None:  # the clone's own usvc (the working directory comes first on sys.path)
+            command = [sys.executable, "-c", "from usvc.cli import main; raise SystemExit(main())", "map",
+                       str(photos.resolve()), "--name", name, "--format", fmt]
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "dvc", "repro"], cwd=clone, env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.run(command, cwd=clone, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True)
         total = time.perf_counter() - t0
+        what = "dvc repro" if photos is None else "usvc map"
         if proc.returncode != 0:
-            raise SystemExit(f"dvc repro failed in the clone (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
+            raise SystemExit(f"{what} failed in the clone (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
         stages = []
         for line in timing.read_text().splitlines():
             row = json.loads(line)
             argv = row["argv"]
-            name = argv[1].removeprefix("stages.") if argv[:1] == ["-m"] and len(argv) > 1 else " ".join(argv)
+            stage = argv[1].removeprefix("stages.") if argv[:1] == ["-m"] and len(argv) > 1 else " ".join(argv)
             scene = next((a.split("=", 1)[1] for a in argv if a.startswith("scene=")), None)
-            stages.append({"stage": name, "scene": scene, "seconds": round(row["seconds"], 2),
+            stages.append({"stage": stage, "scene": scene, "seconds": round(row["seconds"], 2),
                            "peak_memory_mb": round(row["peak_memory_mb"], 1)})
         committed = _lock_outs(yaml.safe_load((ROOT / "dvc.lock").read_text()) if (ROOT / "dvc.lock").exists() else {})
         produced = _lock_outs(yaml.safe_load((clone / "dvc.lock").read_text()))
         differing = sorted(k for k in produced if committed.get(k) != produced[k])
-        scenes = yaml.safe_load((clone / "params.yaml").read_text())["scenes"]
+        # the scenes that ran (a mapped capture only: the others' tracked results are the committed ones)
+        scenes = [name] if photos is not None else yaml.safe_load((clone / "params.yaml").read_text())["scenes"]
         metrics = {}
         for scene in scenes:
             path = ScenePaths(clone / "data", clone / "results", scene).metrics("metrics")
             if path.exists():
                 values = json.loads(path.read_text())
-                metrics[scene] = {k: v for k, v in values.items()
-                                  if k.startswith("acc_") or k in ("median_trans_cm", "median_rot_deg", "n_queries")}
+                metrics[scene] = {k: v for k, v in values.items() if k.startswith("acc_") or k in HEADLINE}
+        machine_info = machine(clone / "results", list(scenes))
     result = {
-        "mode": "fresh clone, dvc repro",
+        "mode": f"fresh clone, {what}",
+        "command": shlex.join(["usvc", *command[3:]]) if photos is not None else "dvc repro",
         "commit": commit,
         "total_seconds": round(total, 1),
         "stage_seconds_sum": round(sum(s["seconds"] for s in stages), 1),
@@ -152,18 +191,24 @@ def fresh_repro(out: Path) -> None:
         "cpus": len(os.sched_getaffinity(0)),
         "threads_env": os.environ.get("OMP_NUM_THREADS", "unset"),
         "cpu": platform.processor() or platform.machine(),
+        **machine_info,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
     for row in stages:
         print(f"{row['stage']:>10} {row['scene'] or '':<8} {row['seconds']:8.1f} s  peak {row['peak_memory_mb']:.0f} MB")
-    print(f"dvc repro from a fresh clone: {total:.1f} s; dvc.lock as committed: {not differing} -> {out}")
+    print(f"{what} from a fresh clone: {total:.1f} s; dvc.lock as committed: {not differing} -> {out}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--fresh", action="store_true",
                         help="clone HEAD into a temporary directory and time a plain `dvc repro` there")
+    parser.add_argument("--map", type=Path, metavar="PHOTOS",
+                        help="with --fresh: time `usvc map PHOTOS` in the clone instead of `dvc repro` (a real "
+                             "capture's mapping, every stage of it)")
+    parser.add_argument("--format", default="images", help="with --map: the capture's format (usvc map --format)")
+    parser.add_argument("--name", default="capture", help="with --map: the scene name it is added as")
     parser.add_argument("--scene")
     parser.add_argument("--stages", nargs="+", default=[*MAPPING, *QUERYING])
     parser.add_argument("--threads", type=int, default=0,
@@ -171,8 +216,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides passed to every stage (after --)")
     args = parser.parse_args()
+    if args.map is not None and not args.fresh:
+        parser.error("--map times a fresh clone's `usvc map`: give --fresh too")
     if args.fresh:
-        fresh_repro(args.out or ROOT / "results" / "benchmarks" / "fresh_repro.json")
+        default = "fresh_repro.json" if args.map is None else f"fresh_map_{args.name}.json"
+        fresh_repro(args.out or ROOT / "results" / "benchmarks" / default, args.map, args.format, args.name)
         return
     if not args.scene:
         parser.error("--scene is required (or --fresh)")
@@ -196,6 +244,7 @@ def main() -> None:
         "cpus": len(os.sched_getaffinity(0)),
         "threads_env": env.get("OMP_NUM_THREADS", "unset"),
         "cpu": platform.processor() or platform.machine(),
+        **machine(ROOT / "results", [name]),
     }
     reloc = ScenePaths(ROOT / "data", ROOT / "results", name).metrics("relocalize")
     if "relocalize" in args.stages and reloc.exists():

@@ -103,3 +103,28 @@ def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked(monkey
         assert turned == pytest.approx(degrees, abs=1e-6)
         assert np.linalg.norm(camera_centers(R2, t2) - camera_centers(R, t)) == pytest.approx(shift, abs=1e-9)
         assert np.allclose(R2 @ R2.T, np.eye(3), atol=1e-12)
+
+
+def test_pipeline_time_records_the_cpu_and_each_scenes_training_precision(tmp_path, monkeypatch):
+    """A mapping time is a figure of its CPU: benchmarks/pipeline_time.py records the model, whether
+    it runs bf16 natively, and the precision each scene's training resolved `auto` to."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import pipeline_time
+
+    from usvc.core.precision import cpu_has_native_bf16
+
+    results = tmp_path / "results"
+    (results / "mini").mkdir(parents=True)
+    (results / "mini" / "train.json").write_text(json.dumps({"precision": "bf16", "iterations": 500}))
+    info = pipeline_time.machine(results, ["mini", "office"])
+    assert info["train_precision"] == {"mini": "bf16"}  # office has no train.json: not listed
+    assert info["native_bf16"] is cpu_has_native_bf16()
+    assert isinstance(info["cpu_model"], str) and info["cpu_model"]
+
+
+def test_pipeline_time_maps_a_capture_only_in_a_fresh_clone(tmp_path):
+    """`--map PHOTOS` times `usvc map` in a fresh clone; without `--fresh` it would add the scene to
+    this checkout, so it is refused before anything runs."""
+    proc = subprocess.run([sys.executable, "benchmarks/pipeline_time.py", "--map", str(tmp_path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "--fresh" in proc.stderr
