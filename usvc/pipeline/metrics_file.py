@@ -15,7 +15,7 @@ from usvc.core.atomic import atomic_file
 # it was.
 TIMING_KEYS = frozenset({"seconds", "peak_memory_mb", "extract_s", "match_s", "reconstruct_s", "train_seconds",
                          "samples_per_second", "fit_seconds", "ms_per_query", "ms_network", "ms_pnp", "ms_refine", "ms_fallback",
-                         "query_seconds", "device", "device_name", "query_workers"})
+                         "query_seconds", "device", "device_name", "query_workers", "query_sift"})
 
 
 def timing_path(path: Path) -> Path:

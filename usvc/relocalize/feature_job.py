@@ -26,7 +26,7 @@ import torch
 
 from usvc.model.preprocess import resize_to_short_side
 from usvc.relocalize.feature_refinement import global_matches
-from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.query_features import QueryFeatures, SiftChoice, extract_sift
 
 T = TypeVar("T")
 _POOL: ThreadPoolExecutor | None = None
@@ -68,8 +68,9 @@ class QueryFeatureSet:
     feats: QueryFeatures
 
 
-def find_features(gray01: np.ndarray, short_side: int, max_keypoints: int, extractor: str) -> QueryFeatureSet:
-    """SIFT on the photo at most `short_side` px on its short side."""
+def find_features(gray01: np.ndarray, short_side: int, max_keypoints: int,
+                  extractor: str | SiftChoice) -> QueryFeatureSet:
+    """SIFT (`extractor`, and where it runs) on the photo at most `short_side` px on its short side."""
     resized = min(gray01.shape) > short_side
     if resized:
         gray01, _ = resize_to_short_side(gray01, short_side)
@@ -108,7 +109,7 @@ class Job:
         return self._value  # type: ignore[return-value]
 
 
-def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extractor: str,
+def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extractor: str | SiftChoice,
                 background: bool | None = None) -> Job:
     """`find_features` for one photo, as a `Job`."""
     return Job(find_features, gray01, short_side, max_keypoints, extractor, background=background)

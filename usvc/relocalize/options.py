@@ -14,8 +14,8 @@ from usvc.core.precision import PRECISIONS
 BACKENDS = ("pycolmap", "opencv")
 REFINE = ("features", "keypoints", "none")
 PRIORS = ("learned", "none")  # what guides refinement by features first
+EXTRACTORS = ("auto", "opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 FINAL = ("guided", "images")  # refinement by features' last evidence (usvc/relocalize/feature_refinement.py)
-EXTRACTORS = ("opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
 # cell "agrees" with a pose far off, so confidence says nothing.
@@ -49,7 +49,7 @@ class RelocalizeOptions:
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
-    features_extractor: str = "opencv"  # query SIFT: opencv (with COLMAP's detector settings: COLMAP's keypoints, most of them, about 4x faster on CPU) | colmap (the landmarks' own extractor)
+    features_extractor: str = "auto"  # query SIFT: auto (COLMAP's on the relocalizer's GPU where pycolmap has CUDA, else opencv) | opencv (on the CPU, with COLMAP's detector settings: COLMAP's keypoints, most of them, about 4x faster there) | colmap (the landmarks' own extractor; on the GPU where pycolmap has CUDA)
     features_max_keypoints: int = 4096  # refine=features: SIFT keypoints of the query (at the mapping images' short side)
     features_radii_px: list[float] = field(default_factory=lambda: [96.0, 24.0, 8.0])  # search radius of each guided pass, px at a 480 px short side
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest

@@ -1,16 +1,23 @@
 """SIFT features of a query photo, matched against landmarks from the sfm stage's SIFT.
 
-Two extractors: OpenCV's (the default: about 4x faster on CPU) and COLMAP's own (pycolmap, CPU:
-the landmarks' exact kind of descriptor). OpenCV's runs with COLMAP's detector settings, so it
-finds most of COLMAP's keypoints (88-90 % as many on the measured scenes) at COLMAP's positions,
-and its descriptors are made L1-root ("RootSIFT") as COLMAP normalises its own; both use Lowe's
-descriptor layout, so they match the same landmarks (docs/results.md measures both). Keypoints use
-COLMAP's pixel convention (the top-left pixel's centre at (0.5, 0.5)), like every 2D point in usvc.
+Two extractors: OpenCV's (on the CPU: about 4x faster than COLMAP's there) and COLMAP's own
+(pycolmap: the landmarks' exact kind of descriptor), on the CPU or, where pycolmap was built with
+CUDA (`pycolmap-cuda12`), on the relocalizer's GPU. OpenCV's runs with COLMAP's detector settings,
+so it finds most of COLMAP's keypoints (88-90 % as many on the measured scenes) at COLMAP's
+positions, and its descriptors are made L1-root ("RootSIFT") as COLMAP normalises its own; both use
+Lowe's descriptor layout, so they match the same landmarks (docs/results.md measures both).
+`relocalize.features_extractor: auto` (the default) takes COLMAP's on the GPU where the relocalizer
+runs on one that pycolmap can use, else OpenCV's: on a CPU the same features as `opencv`.
+Keypoints use COLMAP's pixel convention (the top-left pixel's centre at (0.5, 0.5)), like every 2D
+point in usvc.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
+import threading
+from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +25,10 @@ import pycolmap
 
 from usvc.core import opencv_sift
 from usvc.landmarks.landmark_table import unit_descriptors
+from usvc.relocalize.options import EXTRACTORS
+
+log = logging.getLogger(__name__)
+_GPU_LOCKS: defaultdict[int, threading.Lock] = defaultdict(threading.Lock)  # one extraction at a time per GPU
 
 
 @dataclass(frozen=True)
@@ -33,25 +44,76 @@ FIRST_OCTAVE = -1  # as the sfm stage extracts (COLMAP's default: the image doub
 # but finds fewer, coarser keypoints (bird: median 3.09 cm / 0.66 deg against 2.48 cm / 0.47 deg)
 
 
+@dataclass(frozen=True)
+class SiftChoice:
+    """Which SIFT gives a query's features: `kind` opencv | colmap, and the CUDA device index
+    COLMAP's runs on (None: on the CPU)."""
+
+    kind: str
+    gpu: int | None = None
+
+    def __str__(self) -> str:
+        return self.kind if self.gpu is None else f"{self.kind} (cuda:{self.gpu})"
+
+
+def pycolmap_has_cuda() -> bool:
+    """Whether this pycolmap was built with CUDA (`pycolmap-cuda12`; PyPI's `pycolmap` is CPU-only)."""
+    return bool(getattr(pycolmap, "has_cuda", False))
+
+
+def choose_sift(setting: str, device: str) -> SiftChoice:
+    """The query SIFT for `relocalize.features_extractor` = `setting` on a relocalizer whose torch
+    device is `device` (resolved: cpu, cuda or cuda:N). COLMAP's runs on that GPU where pycolmap can
+    use CUDA; `auto` is then COLMAP's on the GPU, and OpenCV's on the CPU everywhere else."""
+    if setting not in EXTRACTORS:
+        raise ValueError(f"features_extractor={setting!r} is not one of {list(EXTRACTORS)}")
+    gpu = None
+    if device.startswith("cuda"):
+        if pycolmap_has_cuda():
+            gpu = int(device.split(":", 1)[1]) if ":" in device else 0
+        elif setting != "opencv":
+            log.info("the relocalizer runs on %s, but this pycolmap has no CUDA: the query's SIFT runs on the "
+                     "CPU (pycolmap-cuda12 runs COLMAP's on the GPU)", device)
+    if setting == "opencv" or (setting == "auto" and gpu is None):
+        return SiftChoice("opencv")
+    return SiftChoice("colmap", gpu)
+
+
+def _gpu_image_size(height: int, width: int) -> int:
+    """COLMAP's GPU SIFT takes images up to its `max_image_size` (its buffers follow that bound):
+    the photo's longer side, rounded up to 1,024 px, so that a few extractors serve every size."""
+    return -(-max(height, width) // 1024) * 1024
+
+
 @functools.lru_cache(maxsize=4)
-def _extractor(max_features: int) -> pycolmap.FeatureExtractor:
+def _extractor(max_features: int, gpu: int | None = None, max_image_size: int = 100_000) -> pycolmap.FeatureExtractor:
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = max_features
     eo.num_threads = 1  # one image: extraction runs on one thread whatever the setting
-    eo.use_gpu = False
-    eo.max_image_size = 100_000  # the caller chooses the size
+    eo.use_gpu = gpu is not None
+    eo.max_image_size = max_image_size  # the caller chooses the size (on the CPU: no bound)
     eo.sift.first_octave = FIRST_OCTAVE
-    return pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
+    if gpu is None:
+        return pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
+    eo.gpu_index = str(gpu)
+    return pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cuda)
 
 
-def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str = "opencv") -> QueryFeatures:
-    """SIFT keypoints and unit L1-root descriptors of a uint8 grey image (at most `max_features`)."""
+def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str | SiftChoice = "opencv") -> QueryFeatures:
+    """SIFT keypoints and unit L1-root descriptors of a uint8 grey image (at most `max_features`),
+    by `extractor` (a `SiftChoice`, or opencv | colmap on the CPU)."""
     image = np.ascontiguousarray(gray_u8)
-    if extractor == "colmap":
-        keypoints, descriptors = _extractor(int(max_features)).extract_from_uint8_array(image)
+    choice = extractor if isinstance(extractor, SiftChoice) else SiftChoice(extractor)
+    if choice.kind == "colmap":
+        if choice.gpu is None:
+            keypoints, descriptors = _extractor(int(max_features)).extract_from_uint8_array(image)
+        else:
+            size = _gpu_image_size(*image.shape[:2])
+            with _GPU_LOCKS[choice.gpu]:  # COLMAP's GPU extractor is not safe for two threads at once
+                keypoints, descriptors = _extractor(int(max_features), choice.gpu, size).extract_from_uint8_array(image)
         uv = np.array([(p.x, p.y) for p in keypoints], dtype=np.float64).reshape(-1, 2)
         return QueryFeatures(uv, unit_descriptors(np.asarray(descriptors.data)).reshape(-1, 128))
-    if extractor != "opencv":
+    if choice.kind != "opencv" or choice.gpu is not None:
         raise ValueError(f"unknown SIFT extractor {extractor!r}")
     keypoints, unit = opencv_sift.detect(image, max_features)
     return QueryFeatures(opencv_sift.colmap_uv(keypoints), unit)

@@ -50,6 +50,7 @@ from usvc.relocalize.camera_checks import (
     stretch_verdict,
 )
 from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
+from usvc.relocalize.query_features import choose_sift
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.query_cores import for_network, query_split
@@ -103,6 +104,7 @@ class Relocalizer(FocalVerdicts):
         # The map's weights are stored at fp16 whatever precision it was trained at, so any map runs
         # at either precision on any machine.
         self.precision = resolve_precision(self.options.precision, device)
+        self.sift = choose_sift(self.options.features_extractor, device)  # the query's SIFT, and where it runs
         if "short_side" not in self.metadata:
             raise UsvcError(f"map file {map_path} has no metadata field 'short_side' (the image size its head "
                             "was trained at): not a map the train stage wrote")
@@ -261,7 +263,7 @@ class Relocalizer(FocalVerdicts):
         job = None  # the photo's features, found on a second thread while the network runs
         if self.landmarks is not None:
             job = feature_job(full_gray, self.landmarks.image_short_side, self.options.features_max_keypoints,
-                              self.options.features_extractor)
+                              self.sift)
         gray, resize = self.working_image(gray)
         if resize != 1.0 and camera is not None:
             camera = camera.scaled(gray.shape[1], gray.shape[0])

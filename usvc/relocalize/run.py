@@ -40,4 +40,4 @@ def run(inputs: Inputs, out: Path, options: RelocalizeOptions, *, encoder_weight
     log.info("relocalize (%s): %d queries, %d failed, %.0f ms/query", relocalizer.precision,
              stats["queries"], stats["failed"], stats["ms_per_query"])
     return {**stats, "precision": relocalizer.precision, "map_precision": relocalizer.metadata.get("precision", "fp32"),
-            "query_workers": workers}
+            "query_workers": workers, "query_sift": str(relocalizer.sift)}
