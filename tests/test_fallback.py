@@ -25,6 +25,7 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
+from usvc.relocalize import feature_answer as feature_answer_module
 from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import query_evidence as query_evidence_module
 from usvc.relocalize import relocalizer as relocalizer_module
@@ -257,8 +258,8 @@ def test_no_check_on_the_learned_pose_refuses_before_the_features_run(tmp_path: 
     monkeypatch.setattr(Relocalizer, "_focal_disagreement",
                         lambda *a, **k: calls.append("map focal") or real_focal(*a, **k))
     real_stretch = relocalizer_module.stretch_verdict
-    monkeypatch.setattr(relocalizer_module, "stretch_verdict",
-                        lambda *a, **k: calls.append("stretch") or real_stretch(*a, **k))
+    for module in (relocalizer_module, feature_answer_module):  # on the map's coordinates; on the features' P4Pf
+        monkeypatch.setattr(module, "stretch_verdict", lambda *a, **k: calls.append("stretch") or real_stretch(*a, **k))
     for intrinsics in (CAM, None):
         calls.clear()
         est = reloc.localize(photo(), intrinsics)

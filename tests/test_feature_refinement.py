@@ -28,13 +28,14 @@ from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
+    feature_options,
     global_matches,
     guided_matches,
     refine_by_features,
     visible_landmarks,
 )
 from usvc.relocalize.query_features import QueryFeatures, extract_sift
-from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer, feature_options
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.sfm.tracks_file import Tracks
 
 OPTS = FeatureMatchOptions(radii_px=(24.0, 6.0, 2.0), ratio=0.8, max_error_px=1.5, min_inliers=12,
@@ -452,7 +453,7 @@ def test_a_relocalizer_on_a_device_matches_there_and_answers_as_on_the_cpu(tmp_p
                                                                             monkeypatch):
     """The device path of the relocalizer (forced here onto torch's CPU: the same code as on a GPU)
     computes its products through `device_matching` and gives the CPU's answers."""
-    from usvc.relocalize import device_matching, feature_refinement
+    from usvc.relocalize import device_matching, feature_answer, feature_refinement
     from usvc.relocalize import relocalizer as relocalizer_module
 
     reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
@@ -464,7 +465,8 @@ def test_a_relocalizer_on_a_device_matches_there_and_answers_as_on_the_cpu(tmp_p
         real = getattr(device_matching, name)
         monkeypatch.setattr(feature_refinement, name,
                             lambda *a, _real=real, _name=name: calls.append(_name) or _real(*a))
-    monkeypatch.setattr(relocalizer_module, "matching_device", lambda device: "cpu")
+    for module in (relocalizer_module, feature_answer):  # where the matching against every landmark, and the
+        monkeypatch.setattr(module, "matching_device", lambda device: "cpu")  # guided passes, are placed
     on_device = [reloc.localize(photo(), q) for q in queries]
     assert {"masked_row_best_two", "best_two_and_column_max"} <= set(calls)
     for a, b in zip(on_cpu, on_device):

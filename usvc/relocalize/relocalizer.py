@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +31,10 @@ from usvc.model.head import Regressor
 from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.feature_job import Job, QueryFeatureSet, feature_job, global_match_job, runs_beside
+from usvc.relocalize.feature_job import Job, feature_job, global_match_job, runs_beside
 from usvc.relocalize.device_matching import matching_device
-from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, feature_options, refine_by_features
+from usvc.relocalize.feature_answer import FeatureAnswers
+from usvc.relocalize.feature_refinement import FeatureResult
 from usvc.relocalize.focal_verdicts import (
     FOCAL_UNCHECKED,
     FOCAL_UNCHECKED_MAP,
@@ -42,7 +43,6 @@ from usvc.relocalize.focal_verdicts import (
     FocalVerdicts,
 )
 from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp
-from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.camera_checks import (
     FOCAL_SPREAD,
     intrinsics_warnings,
@@ -54,7 +54,6 @@ from usvc.relocalize.query_features import choose_sift
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.query_cores import for_network, query_split
-from usvc.relocalize.query_evidence import QueryEvidence
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.relocalize.verified_matching import observation_descriptors
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
@@ -75,7 +74,7 @@ def refine_options(options: RelocalizeOptions) -> RefineOptions:
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
 
 
-class Relocalizer(FocalVerdicts):
+class Relocalizer(FeatureAnswers, FocalVerdicts):
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
@@ -400,69 +399,3 @@ class Relocalizer(FocalVerdicts):
         if feature is not None:
             why += f", and the photo's features gave none ({feature.why or 'no match to the landmarks'})"
         return why + ": not a view of this map's scene, or too dark, blurred or featureless?"
-
-    def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
-                  camera: Camera, dense, check_focal: bool,
-                  source: str = "") -> tuple[FeatureResult, str, Camera, QueryEvidence]:
-        """Refinement by features on the undistorted photo's features (`found_set`: found on the
-        photo resized to the mapping images' short side when larger; `global_pairs` gives their
-        matches to every landmark when they are being found already); returns the result, why it is not trusted ("") and the camera it used,
-        at the photo's size.
-
-        Hypotheses in order of cost: guided passes from the learned pose; when they find no pose
-        (or with prior=none, or no learned pose), matching against every landmark's descriptor and
-        SIFT + PnP's evidence (`verified_matches`), each tightened by guided passes; the one with
-        the most support wins. Without given intrinsics (`check_focal` False) the focal length
-        comes from P4Pf on correspondences that do not depend on it (the global matches, else the
-        verified ones) where they give one, and they also tell whether the photo was stretched."""
-        assert self.landmarks is not None
-        full = camera
-        feats = found_set.feats
-        if found_set.resized:
-            camera = camera.scaled(found_set.gray.shape[1], found_set.gray.shape[0])
-        opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device),
-                               torch.get_num_threads())
-        evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
-                                 self.seed, use_global=self.prior, global_pairs=global_pairs)
-        prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
-        verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
-        if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is
-            verdict = Job(self._feature_focal_verdict, evidence, source)  # found beside the guided passes
-        if not check_focal:
-            for uv, xyz, fp in evidence.focal_poses():
-                if fp is None or int(fp.inlier_mask.sum()) < opts.min_inliers:
-                    continue
-                stretched = stretch_verdict(uv, xyz, fp.camera, fp.R, fp.t, opts.max_error_px)
-                if stretched:
-                    return FeatureResult(None, None), stretched, full, evidence
-                camera = fp.camera
-                full = camera.scaled(full.width, full.height)
-                evidence.focal_estimated = True
-                prior = (fp.R, fp.t) if prior[0] is None else prior
-                break
-        # a learned pose that too few cells agree with may lead the guided passes to a wrong pose: the
-        # matches to every landmark get their chance too (computed already, for the focal verdict)
-        weak = bool(dense.success and dense.num_inliers < self.options.min_confidence * len(dense.inlier_mask))
-        agreement = None  # a guided answer checked against the matches to every landmark, where they are found anyway
-        if evidence.use_global and global_pairs is not None:
-            def agreement(result: FeatureResult) -> tuple[int, int] | None:
-                if verdict is not None:  # its P4Pf on those matches is the reference: found once, on its thread
-                    verdict.result()
-                return evidence.agreement(result.R, result.t, camera)
-        found = self._hypotheses(feats, camera, prior, opts, evidence, weak, agreement)
-        if not found.success or not check_focal or self.options.focal_tolerance <= 0:
-            return found, "", full, evidence
-        return found, verdict.result() if verdict is not None else self._feature_focal_verdict(evidence, source), \
-            full, evidence
-
-    def _hypotheses(self, feats: QueryFeatures, camera: Camera, prior: tuple, opts: FeatureMatchOptions,
-                    evidence: QueryEvidence, weak_prior: bool = False,
-                    agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None) -> FeatureResult:
-        assert self.landmarks is not None
-        found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
-                                   self.seed, verified=evidence.verified, use_global=evidence.use_global,
-                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior,
-                                   image_descriptors=self._observation_desc, agreement=agreement)
-        found.verified = evidence.verified_record()
-        found.verified_seconds = evidence.verified_seconds()
-        return found
