@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -34,7 +33,7 @@ from usvc.relocalize.feature_refinement import (
     refine_by_features,
     visible_landmarks,
 )
-from usvc.relocalize.query_features import QueryFeatures, extract_sift
+from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.sfm.tracks_file import Tracks
 
@@ -350,18 +349,6 @@ def test_bad_feature_options_are_named(key: str, value: object):
     assert len(problems) == 1 and problems[0].startswith(f"{key}=")
 
 
-@pytest.mark.parametrize("extractor", ["opencv", "colmap"])
-def test_sift_extractors_give_unit_descriptors_in_colmap_pixels(extractor: str):
-    rng = np.random.default_rng(0)
-    img = (rng.random((120, 160)) * 255).astype(np.uint8)
-    img = np.kron(img[::4, ::4], np.ones((4, 4), np.uint8))[:120, :160]  # blocks: corners SIFT finds
-    feats = extract_sift(img, 500, extractor)
-    assert len(feats) > 20 and feats.descriptor.dtype == np.float32
-    assert np.allclose(np.linalg.norm(feats.descriptor, axis=1), 1.0, atol=1e-3)
-    assert np.all(feats.descriptor >= 0)
-    assert np.all((feats.uv >= 0) & (feats.uv <= [160, 120]))
-
-
 def synthetic_relocalizer(tmp_path: Path, monkeypatch) -> tuple[Relocalizer, QueryFeatures]:
     """A relocalizer on a map of `scene()`'s landmarks, whose query photos have `scene()`'s features
     (with `synthetic_query`'s coordinates): the relocalizer and those features."""
@@ -397,48 +384,6 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
     monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: wide)
     est = reloc.localize(photo(), None)
     assert not est.success and "looks stretched" in est.rejected and np.isnan(est.R).all()
-
-
-def cv2_blur(small: np.ndarray) -> np.ndarray:
-    """A 240 x 320 image of smooth blobs: SIFT's kind of structure, at several scales."""
-    big = cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC)
-    return cv2.GaussianBlur(big, (0, 0), 1.5)
-
-
-def test_opencv_sift_finds_colmaps_keypoints_where_colmap_finds_them():
-    """OpenCV's SIFT with COLMAP's detector settings (precise upscaling, COLMAP's peak threshold)
-    lands on COLMAP's own keypoints: OpenCV's default upscaling shifts them by a quarter pixel,
-    which guided matching turns into pose error."""
-    from scipy.spatial import cKDTree
-
-    rng = np.random.default_rng(1)
-    img = cv2_blur((rng.random((60, 80)) * 255).astype(np.uint8))
-    colmap, opencv = extract_sift(img, 2000, "colmap"), extract_sift(img, 2000, "opencv")
-    assert len(opencv) >= 0.7 * len(colmap) > 50
-    dist, nearest = cKDTree(opencv.uv).query(colmap.uv)
-    near = dist < 1.0
-    assert near.mean() > 0.6
-    offset = opencv.uv[nearest[near]] - colmap.uv[near]
-    assert np.all(np.abs(np.median(offset, axis=0)) < 0.02)  # the default upscaling: ~0.24 px on each axis
-    agree = np.einsum("ij,ij->i", opencv.descriptor[nearest[near]], colmap.descriptor[near])
-    assert np.median(agree) > 0.95
-
-
-def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_threads():
-    """Same config, same bits: OpenCV's SIFT runs parallel loops, and its keypoints (order included,
-    which guided matching's ties follow) must not depend on how many threads it had."""
-    img = cv2_blur((np.random.default_rng(2).random((60, 80)) * 255).astype(np.uint8))
-    before = cv2.getNumThreads()
-    try:
-        runs = []
-        for n in (1, 2, 4):
-            cv2.setNumThreads(n)
-            runs.append(extract_sift(img, 2000, "opencv"))
-    finally:
-        cv2.setNumThreads(before)
-    assert len(runs[0]) > 50
-    for other in runs[1:]:
-        assert np.array_equal(other.uv, runs[0].uv) and np.array_equal(other.descriptor, runs[0].descriptor)
 
 
 def test_descriptor_products_go_to_the_device_only_off_the_cpu():

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -104,12 +105,66 @@ def test_the_relocalizer_finds_the_query_features_with_its_choice(tmp_path: Path
     assert seen == [SiftChoice("colmap", 3)]
 
 
+@pytest.mark.parametrize("extractor", ["opencv", "colmap"])
+def test_sift_extractors_give_unit_descriptors_in_colmap_pixels(extractor: str):
+    rng = np.random.default_rng(0)
+    img = (rng.random((120, 160)) * 255).astype(np.uint8)
+    img = np.kron(img[::4, ::4], np.ones((4, 4), np.uint8))[:120, :160]  # blocks: corners SIFT finds
+    feats = extract_sift(img, 500, extractor)
+    assert len(feats) > 20 and feats.descriptor.dtype == np.float32
+    assert np.allclose(np.linalg.norm(feats.descriptor, axis=1), 1.0, atol=1e-3)
+    assert np.all(feats.descriptor >= 0)
+    assert np.all((feats.uv >= 0) & (feats.uv <= [160, 120]))
+
+
+def cv2_blur(small: np.ndarray) -> np.ndarray:
+    """A 240 x 320 image of smooth blobs: SIFT's kind of structure, at several scales."""
+    big = cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC)
+    return cv2.GaussianBlur(big, (0, 0), 1.5)
+
+
+def test_opencv_sift_finds_colmaps_keypoints_where_colmap_finds_them():
+    """OpenCV's SIFT with COLMAP's detector settings (precise upscaling, COLMAP's peak threshold)
+    lands on COLMAP's own keypoints: OpenCV's default upscaling shifts them by a quarter pixel,
+    which guided matching turns into pose error."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    img = cv2_blur((rng.random((60, 80)) * 255).astype(np.uint8))
+    colmap, opencv = extract_sift(img, 2000, "colmap"), extract_sift(img, 2000, "opencv")
+    assert len(opencv) >= 0.7 * len(colmap) > 50
+    dist, nearest = cKDTree(opencv.uv).query(colmap.uv)
+    near = dist < 1.0
+    assert near.mean() > 0.6
+    offset = opencv.uv[nearest[near]] - colmap.uv[near]
+    assert np.all(np.abs(np.median(offset, axis=0)) < 0.02)  # the default upscaling: ~0.24 px on each axis
+    agree = np.einsum("ij,ij->i", opencv.descriptor[nearest[near]], colmap.descriptor[near])
+    assert np.median(agree) > 0.95
+
+
+def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_threads():
+    """Same config, same bits: OpenCV's SIFT runs parallel loops, and its keypoints (order included,
+    which guided matching's ties follow) must not depend on how many threads it had."""
+    img = cv2_blur((np.random.default_rng(2).random((60, 80)) * 255).astype(np.uint8))
+    before = cv2.getNumThreads()
+    try:
+        runs = []
+        for n in (1, 2, 4):
+            cv2.setNumThreads(n)
+            runs.append(extract_sift(img, 2000, "opencv"))
+    finally:
+        cv2.setNumThreads(before)
+    assert len(runs[0]) > 50
+    for other in runs[1:]:
+        assert np.array_equal(other.uv, runs[0].uv) and np.array_equal(other.descriptor, runs[0].descriptor)
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not query_features.pycolmap_has_cuda(), reason="pycolmap without CUDA (pycolmap-cuda12)")
 def test_colmaps_sift_on_the_gpu_finds_the_cpus_keypoints():
     """On a GPU (pycolmap-cuda12): COLMAP's GPU SIFT finds most of its CPU SIFT's keypoints at the
     same places, with descriptors that match them (SiftGPU is not the same code, so not the same bits)."""
-    gray = blocks((480, 640))
+    gray = cv2_blur((np.random.default_rng(1).random((60, 80)) * 255).astype(np.uint8))
     gpu, cpu = extract_sift(gray, 2000, SiftChoice("colmap", 0)), extract_sift(gray, 2000, "colmap")
     assert len(gpu) >= 0.7 * len(cpu)
     d = np.linalg.norm(cpu.uv[:, None] - gpu.uv[None], axis=2)
