@@ -102,20 +102,10 @@ sys.exit(code)
 """
 
 
-def cpu_model() -> str:
-    """The processor's model name (/proc/cpuinfo), else what `platform` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine(results: Path, scenes: list[str]) -> dict:
     """What the seconds depend on besides the code: the CPU, whether it runs bf16 natively, and the
     precision each scene's training ran at (`train.precision: auto` follows the CPU)."""
+    from usvc.core.device import device_name
     from usvc.core.precision import cpu_has_native_bf16
 
     precision = {}
@@ -123,7 +113,7 @@ def machine(results: Path, scenes: list[str]) -> dict:
         path = ScenePaths(results.parent / "data", results, scene).metrics("train")
         if path.exists():
             precision[scene] = json.loads(path.read_text()).get("precision")
-    return {"cpu_model": cpu_model(), "native_bf16": cpu_has_native_bf16(), "train_precision": precision}
+    return {"cpu_model": device_name("cpu"), "native_bf16": cpu_has_native_bf16(), "train_precision": precision}
 
 
 def _lock_outs(lock: dict) -> dict[str, list[str]]:
