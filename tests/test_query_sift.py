@@ -40,6 +40,7 @@ def test_on_the_cpu_the_sift_is_where_it_always_was(setting: str, cuda: bool, mo
 
 def test_on_a_gpu_auto_is_colmaps_sift_on_that_gpu_where_pycolmap_has_cuda(monkeypatch):
     monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: True)
+    monkeypatch.setattr(query_features, "_gpu_sift_problem", lambda gpu: "")  # its extractor starts there
     assert choose_sift("auto", "cuda") == SiftChoice("colmap", 0)
     assert choose_sift("auto", "cuda:1") == SiftChoice("colmap", 1)
     assert choose_sift("colmap", "cuda:2") == SiftChoice("colmap", 2)
@@ -53,6 +54,29 @@ def test_on_a_gpu_without_pycolmaps_cuda_the_sift_stays_on_the_cpu_and_says_so(m
         assert choose_sift("auto", "cuda") == SiftChoice("opencv")
         assert choose_sift("colmap", "cuda:0") == SiftChoice("colmap")
     assert "no CUDA" in caplog.text and "pycolmap-cuda12" in caplog.text
+
+
+def test_a_gpu_where_colmaps_sift_does_not_start_leaves_the_sift_on_the_cpu(monkeypatch, caplog):
+    """pycolmap-cuda12 on a machine whose GPU SiftGPU cannot use (it then falls back to OpenGL and
+    fails): one warning naming why, and the CPU's SIFT, not a failure inside every query."""
+    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: True)
+    query_features._extractor.cache_clear()
+    query_features._gpu_sift_problem.cache_clear()
+
+    def create(options, device):
+        if device == pycolmap.Device.cuda:
+            raise ValueError("[extraction.cc:50] 'FeatureExtractor::Create(*options)' Must be non NULL")
+        raise AssertionError("only the GPU extractor is tried")
+
+    monkeypatch.setattr(pycolmap.FeatureExtractor, "create", create)
+    try:
+        with caplog.at_level(logging.WARNING, logger=query_features.__name__):
+            assert choose_sift("auto", "cuda:0") == SiftChoice("opencv")
+            assert choose_sift("colmap", "cuda:0") == SiftChoice("colmap")
+    finally:
+        query_features._extractor.cache_clear()
+        query_features._gpu_sift_problem.cache_clear()
+    assert "does not start on cuda:0" in caplog.text and "Must be non NULL" in caplog.text
 
 
 def test_an_unknown_extractor_is_named():

@@ -68,15 +68,31 @@ def choose_sift(setting: str, device: str) -> SiftChoice:
     if setting not in EXTRACTORS:
         raise ValueError(f"features_extractor={setting!r} is not one of {list(EXTRACTORS)}")
     gpu = None
-    if device.startswith("cuda"):
-        if pycolmap_has_cuda():
-            gpu = int(device.split(":", 1)[1]) if ":" in device else 0
-        elif setting != "opencv":
+    if device.startswith("cuda") and setting != "opencv":
+        if not pycolmap_has_cuda():
             log.info("the relocalizer runs on %s, but this pycolmap has no CUDA: the query's SIFT runs on the "
                      "CPU (pycolmap-cuda12 runs COLMAP's on the GPU)", device)
+        else:
+            gpu = int(device.split(":", 1)[1]) if ":" in device else 0
+            problem = _gpu_sift_problem(gpu)
+            if problem:
+                log.warning("COLMAP's SIFT does not start on cuda:%d (%s): the query's SIFT runs on the CPU", gpu,
+                            problem)
+                gpu = None
     if setting == "opencv" or (setting == "auto" and gpu is None):
         return SiftChoice("opencv")
     return SiftChoice("colmap", gpu)
+
+
+@functools.lru_cache(maxsize=None)
+def _gpu_sift_problem(gpu: int) -> str:
+    """Why COLMAP's SIFT cannot run on CUDA device `gpu` ("" when it can): making its extractor
+    there once tells (without a usable device SiftGPU falls back to OpenGL, and fails headless)."""
+    try:
+        _extractor(1024, gpu, 1024)
+    except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError from C++ checks
+        return str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+    return ""
 
 
 def _gpu_image_size(height: int, width: int) -> int:
