@@ -132,7 +132,7 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
         "first_stage": stages[0], "train_repeat_wall_seconds": repeat_seconds,
         "same_map_twice": _md5(map_file) == digest if repeat else None,
         "relocalize": {k: reloc.get(k) for k in ("ms_per_query", "ms_network", "ms_refine", "ms_pnp", "ms_fallback",
-                                                 "queries", "answer_paths", "fallback_runs")},
+                                                 "queries", "answer_paths", "fallback_runs", "query_sift")},
         "metrics": {k: metrics[k] for k in METRICS if k in metrics},
     }
     if batch_sizes:
