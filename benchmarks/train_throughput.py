@@ -38,7 +38,7 @@ import torch  # noqa: E402
 from _report import write_report  # noqa: E402
 
 from usvc.buffer.buffer_file import read_buffer# noqa: E402
-from usvc.core.precision import cpu_has_native_bf16, resolve_precision  # noqa: E402
+from usvc.core.precision import cpu_has_native_bf16, product_seconds, resolve_precision  # noqa: E402
 from usvc.model.head import Head  # noqa: E402
 from usvc.pipeline import threads as thread_policy  # noqa: E402
 from usvc.pipeline.config import compose_for_script  # noqa: E402
@@ -49,18 +49,9 @@ from usvc.train.trainer import TrainOptions, train_head  # noqa: E402
 
 def matmul_gflops(rows: int, width: int, repeats: int = 300, dtype: torch.dtype = torch.float32) -> float:
     """Sustained GFLOP/s of a (rows x width) @ (width x width) product in `dtype` on this CPU: the
-    best of five blocks of `repeats / 5` products (a peak, so a neighbour's burst does not lower it)."""
-    a, b = torch.randn(rows, width).to(dtype), torch.randn(width, width).to(dtype)
-    for _ in range(20):
-        a @ b
+    best of five blocks of `repeats / 5` products (the precision probe's timing)."""
     block = max(1, repeats // 5)
-    best = float("inf")
-    for _ in range(5):
-        start = time.perf_counter()
-        for _ in range(block):
-            a @ b
-        best = min(best, time.perf_counter() - start)
-    return 2.0 * rows * width * width * block / best / 1e9
+    return 2.0 * rows * width * width * block / product_seconds(dtype, block, rows, width, blocks=5) / 1e9
 
 
 def head_macs_per_sample(in_channels: int, width: int, blocks: int) -> int:

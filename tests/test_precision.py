@@ -50,7 +50,7 @@ def test_a_bad_precision_stops_the_stage_in_one_line():
 
 def test_auto_is_fp32_without_native_bf16_and_never_runs_the_probe(monkeypatch, fresh_probe):
     monkeypatch.setattr(prec, "cpu_has_native_bf16", lambda: False)
-    monkeypatch.setattr(prec, "_time_products", lambda *a, **k: pytest.fail("the probe ran"))
+    monkeypatch.setattr(prec, "product_seconds", lambda *a, **k: pytest.fail("the probe ran"))
     assert prec.resolve_precision("auto", "cpu") == "fp32"
 
 
@@ -74,7 +74,7 @@ def test_explicit_settings_are_kept_and_unknown_ones_refused():
 @pytest.mark.probe
 def test_the_probe_is_measured_once_per_process(monkeypatch, fresh_probe):
     calls = []
-    monkeypatch.setattr(prec, "_time_products", lambda dtype, reps=8: calls.append(dtype) or 1.0)
+    monkeypatch.setattr(prec, "product_seconds", lambda dtype, reps=8: calls.append(dtype) or 1.0)
     assert prec.cpu_bf16_speedup() == 1.0 and prec.cpu_bf16_speedup() == 1.0
     assert calls == [torch.float32, torch.bfloat16]
 

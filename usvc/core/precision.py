@@ -55,15 +55,17 @@ def cpu_has_native_bf16() -> bool:
     return bool(_cpuinfo_flags() & set(_CPU_FLAGS))
 
 
-def _time_products(dtype, reps: int = 8) -> float:
+def product_seconds(dtype, reps: int = 8, rows: int = 3072, width: int = 256, blocks: int = 3) -> float:
+    """Seconds of `reps` (rows x width) by (width x width) products in `dtype`: the fastest of
+    `blocks` runs (a peak, so that a neighbour's burst on a shared machine does not lower it)."""
     import torch
 
     gen = torch.Generator().manual_seed(0)
-    a = torch.randn(3072, 256, generator=gen).to(dtype)
-    b = torch.randn(256, 256, generator=gen).to(dtype)
+    a = torch.randn(rows, width, generator=gen).to(dtype)
+    b = torch.randn(width, width, generator=gen).to(dtype)
     a @ b  # warm-up: oneDNN picks and caches its kernel
     best = float("inf")
-    for _ in range(3):
+    for _ in range(blocks):
         t0 = time.perf_counter()
         for _ in range(reps):
             a @ b
@@ -77,7 +79,7 @@ def cpu_bf16_speedup() -> float:
     process, best of three; about 50 ms)."""
     import torch
 
-    speedup = _time_products(torch.float32) / _time_products(torch.bfloat16)
+    speedup = product_seconds(torch.float32) / product_seconds(torch.bfloat16)
     log.debug("bf16 probe: %.2fx the fp32 product rate", speedup)
     return speedup
 
