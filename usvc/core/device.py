@@ -27,6 +27,11 @@ def device_problem(setting: object) -> str:
     return f"device={setting!r} is not one of {DEVICE_CHOICES}"
 
 
+def cuda_index(device: str) -> int:
+    """The CUDA device a 'cuda' or 'cuda:N' setting names: N, and 0 for 'cuda'."""
+    return int(device.split(":", 1)[1]) if ":" in device else 0
+
+
 def resolve_device(setting: str) -> str:
     """`auto` -> 'cuda' or 'cpu'; 'cpu', 'cuda', 'cuda:N' as given once checked (UsvcError, one line,
     when the CUDA device is not there)."""
@@ -43,7 +48,7 @@ def resolve_device(setting: str) -> str:
     if not available:
         raise UsvcError(f"device={setting!r}: CUDA is not available to this torch build or machine "
                         "(device=cpu, or auto to use CUDA only where there is one)")
-    index = int(setting.split(":")[1]) if ":" in setting else 0
+    index = cuda_index(setting)
     if index >= torch.cuda.device_count():
         raise UsvcError(f"device={setting!r}: this machine has {torch.cuda.device_count()} CUDA device(s), "
                         f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")

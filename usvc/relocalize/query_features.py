@@ -24,6 +24,7 @@ import numpy as np
 import pycolmap
 
 from usvc.core import opencv_sift
+from usvc.core.device import cuda_index
 from usvc.landmarks.landmark_table import unit_descriptors
 from usvc.relocalize.options import EXTRACTORS
 
@@ -73,7 +74,7 @@ def choose_sift(setting: str, device: str) -> SiftChoice:
             log.info("the relocalizer runs on %s, but this pycolmap has no CUDA: the query's SIFT runs on the "
                      "CPU (pycolmap-cuda12 runs COLMAP's on the GPU)", device)
         else:
-            gpu = int(device.split(":", 1)[1]) if ":" in device else 0
+            gpu = cuda_index(device)
             problem = _gpu_sift_problem(gpu)
             if problem:
                 log.warning("COLMAP's SIFT does not start on cuda:%d (%s): the query's SIFT runs on the CPU", gpu,
