@@ -27,9 +27,10 @@ from scipy.spatial import cKDTree
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.counted_refinement import distinct_pairs, refine_counted
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import in_image, project_points, refine_on_inliers, solve_pnp
+from usvc.relocalize.pnp import in_image, project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
 from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
@@ -350,10 +351,12 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
     the query matched to the mapping images that observe the landmarks the answer was found with
     (`pose_checked_matches`: per image, verified by the answer's pose within twice
-    VERIFIED_MAX_ERROR_PX), and the pose refined on those within VERIFIED_MAX_ERROR_PX (COLMAP's
-    refinement, as the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once per image it
-    matched in, as SIFT + PnP counts it. That count is what makes the baseline's pose the more precise
-    one on mini: its correspondences counted once each gave a worse median (docs/results.md).
+    VERIFIED_MAX_ERROR_PX), and the pose refined on those within VERIFIED_MAX_ERROR_PX (the Cauchy
+    loss of COLMAP's refinement, the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once
+    per image it matched in, as SIFT + PnP counts it: each distinct (keypoint, landmark) pair once,
+    weighted by that count (`counted_refinement`, the same objective at a tenth of the cost). That
+    count is what makes the baseline's pose the more precise one on mini: its correspondences
+    counted once each gave a worse median (docs/results.md).
     Replaces `out`'s pose when at least min_inliers distinct keypoints support the new one."""
     assert out.R is not None and out.t is not None
     uv, _ = project_points(camera, out.match_xyz, out.R, out.t)
@@ -361,13 +364,16 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     scale = min(camera.width, camera.height) / landmarks.image_short_side
     found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, 2 * VERIFIED_MAX_ERROR_PX * scale,
                                  image_descriptors, opts.threads)
-    res = refine_on_inliers(found.uv, found.xyz, camera, out.R, out.t, VERIFIED_MAX_ERROR_PX * scale) \
-        if len(found) >= opts.min_inliers else None
-    support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[res.inlier_mask])))
+    rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
+    res = refine_counted(found.uv[rows], found.xyz[rows], counts, camera, out.R, out.t,
+                         VERIFIED_MAX_ERROR_PX * scale) if len(found) >= opts.min_inliers else None
+    support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[rows][res.inlier_mask])))
     out.passes.append({"kind": "images", "radius_px": None, "candidates": int(found.images),
-                       "matches": int(len(found)), "verified_pairs": int(found.verified_pairs), "inliers": support})
+                       "matches": int(len(found)), "distinct_matches": int(len(rows)),
+                       "verified_pairs": int(found.verified_pairs), "inliers": support})
     if support >= opts.min_inliers:
-        _accept(out, res, found.uv, landmarks, found.landmark, support)
+        _accept(out, res, found.uv[rows], landmarks, found.landmark[rows], support)
+        out.matches = len(found)
 
 
 def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
