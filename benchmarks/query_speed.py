@@ -9,7 +9,7 @@ untimed ones, split as the relocalizer reports it (preprocess, network, pnp, ref
 the map's size on disk (head, landmarks) is recorded beside the SfM model's. Writes
 results/benchmarks/query_speed_<scene>.json with the command line and the machine context.
 Run (nothing else heavy running, threads as the product uses them):
-python benchmarks/query_speed.py --scene-dir data/bird --size 640x480   [--device cuda]
+python benchmarks/query_speed.py --scene-dir data/bird --size 640x480   [--device cuda] [--final images]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from _photos import query_photos  # noqa: E402
 from _report import scene_of, write_report  # noqa: E402
 
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
-from usvc.relocalize.options import REFINE  # noqa: E402
+from usvc.relocalize.options import FINAL, REFINE  # noqa: E402
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer  # noqa: E402
 
 
@@ -46,14 +46,16 @@ def main() -> None:
     ap.add_argument("--refine", nargs="+", choices=variants, default=variants)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--device", default="cpu", help="the relocalizer's device: auto | cpu | cuda | cuda:N")
+    ap.add_argument("--final", choices=FINAL, default=RelocalizeOptions.features_final,
+                    help="refinement by features' last evidence (relocalize.features_final)")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     photos = query_photos(args.scene_dir, size)
     paths = ScenePaths.of_scene_dir(args.scene_dir)
     rows = {}
     for refine in args.refine:
-        options = RelocalizeOptions(refine="features", features_extractor="colmap") if refine == "features-colmap" \
-            else RelocalizeOptions(refine=refine)
+        options = RelocalizeOptions(refine="features", features_extractor="colmap", features_final=args.final) \
+            if refine == "features-colmap" else RelocalizeOptions(refine=refine, features_final=args.final)
         reloc = Relocalizer(paths.map_file, options=options, device=args.device)
         for rgb, intr in photos[: args.warmup]:
             reloc.localize(rgb, intr)
@@ -64,10 +66,11 @@ def main() -> None:
     sizes = {"map_head_mb": _megabytes(paths.map_file), "landmarks_mb": _megabytes(paths.landmarks),
              "sfm_model_mb": _megabytes(paths.sfm / "model")}
     print({k: round(v, 2) for k, v in sizes.items()})
-    name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "") + ("" if args.device == "cpu" else f"_{reloc.device}")
+    name = scene_of(args.scene_dir) + (f"_{w}x{h}" if size else "") + ("" if args.device == "cpu" else f"_{reloc.device}") \
+        + ("" if args.final == RelocalizeOptions.features_final else f"_final_{args.final}")
     write_report(f"query_speed_{name}", {"scene": scene_of(args.scene_dir), "queries": len(photos),
                                          "image_size": [w, h], "threads": torch.get_num_threads(),
-                                         "device": str(reloc.device),
+                                         "device": str(reloc.device), "features_final": args.final,
                                          "seconds_median": rows, **sizes})
 
 

@@ -350,8 +350,10 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
                 opts: FeatureMatchOptions, seed: int = 0, image_descriptors: list[np.ndarray] | None = None) -> None:
     """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
     the query matched to the mapping images that observe the landmarks the answer was found with
-    (`pose_checked_matches`: per image, verified by the answer's pose within twice
-    VERIFIED_MAX_ERROR_PX), and the pose refined on those within VERIFIED_MAX_ERROR_PX (the Cauchy
+    (`pose_checked_matches`: per image, verified by the answer's pose within VERIFIED_MAX_ERROR_PX,
+    so only the keypoints within that of a landmark are compared: twice that compared ~2x the
+    keypoints for the same answers to a few per cent of the median, docs/results.md), and the pose
+    refined on those within VERIFIED_MAX_ERROR_PX again under each new pose (the Cauchy
     loss of COLMAP's refinement, the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once
     per image it matched in, as SIFT + PnP counts it: each distinct (keypoint, landmark) pair once,
     weighted by that count (`counted_refinement`, the same objective at a tenth of the cost). That
@@ -362,7 +364,7 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     uv, _ = project_points(camera, out.match_xyz, out.R, out.t)
     seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
     scale = min(camera.width, camera.height) / landmarks.image_short_side
-    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, 2 * VERIFIED_MAX_ERROR_PX * scale,
+    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, VERIFIED_MAX_ERROR_PX * scale,
                                  image_descriptors, opts.threads)
     rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
     res = refine_counted(found.uv[rows], found.xyz[rows], counts, camera, out.R, out.t,

@@ -56,7 +56,7 @@ class RelocalizeOptions:
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
-    features_final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (then SIFT + PnP's per-image matches around it, checked by its pose, PnP at 4 px: the baseline's weighting, more precise on mini, +35-170 ms a query)
+    features_final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (then SIFT + PnP's per-image matches around it, checked by its pose at 4 px, refined at 4 px: the baseline's weighting, more precise on mini and bird, +20-60 ms a 640 x 480 query)
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:

@@ -198,6 +198,13 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
 
     scratch = threading.local()  # each thread's products, reused from image to image
     most = max((len(rows) for rows, _ in chosen), default=0) * len(feats)
+    # (landmark, keypoint) pairs the pose puts within max_error_px of each other, found once: only
+    # keypoints within reach of one of an image's landmarks can give a match the pose explains, so
+    # the others are left out of that image's products (and so of its mutual test)
+    shown = np.flatnonzero(visible)
+    reach = cKDTree(uv_lm[shown]).sparse_distance_matrix(cKDTree(feats.uv), max_error_px, output_type="ndarray") \
+        if len(shown) and len(feats) else np.zeros(0, [("i", np.intp), ("j", np.intp), ("v", np.float64)])
+    reach_lm, reach_kp = shown[reach["i"]], reach["j"].astype(np.int64)
 
     def match(image: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
         """The image's matches the pose explains (query rows, landmark rows); None: too few matches at all."""
@@ -205,10 +212,11 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         kept = np.flatnonzero(visible[rows])
         if len(kept) == 0:
             return None
-        # only keypoints the pose puts within reach of one of the image's landmarks can give a match it
-        # explains: the others are left out of the products (and so of the mutual test)
-        near = np.flatnonzero(np.isfinite(cKDTree(uv_lm[rows[kept]]).query(feats.uv, k=1,
-                                                                             distance_upper_bound=max_error_px)[0]))
+        mine = np.zeros(len(landmarks.xyz), bool)
+        mine[rows[kept]] = True
+        near = np.zeros(len(feats), bool)
+        near[reach_kp[mine[reach_lm]]] = True
+        near = np.flatnonzero(near)
         if getattr(scratch, "products", None) is None:
             scratch.products = np.empty(most, np.float32)
         qi, mi = mutual_ratio_matches(feats.descriptor[near], desc if len(kept) == len(rows) else desc[kept],
