@@ -4,8 +4,9 @@ OneCycleLR cycles beta1 between 0.95 and 0.85 against the rate), and torch's own
 tensor beta1 only as a number read back to the host, which a captured step cannot do.
 
 The update is torch's AdamW (decoupled weight decay, bias corrections with the current beta1
-and the step count, eps outside the square root), written with tensor scalars:
-tests/test_graph_adamw.py holds it to `torch.optim.AdamW` step for step.
+and the step count, eps outside the square root), written with tensor scalars and multi-tensor
+(foreach) kernels, none of which reads a value back: tests/test_graph_adamw.py holds it to
+`torch.optim.AdamW` step for step.
 """
 
 from __future__ import annotations
@@ -44,17 +45,30 @@ class GraphAdamW:
 
     @torch.no_grad()
     def step(self) -> None:
+        """One update of every parameter with a gradient, as multi-tensor (foreach) kernels: a dozen
+        launches for the whole head instead of a dozen per parameter (on a GPU each launch costs a
+        few microseconds even replayed in a graph). Per element the same operations, in the same
+        order, as the update written one parameter at a time (tests/test_graph_adamw.py holds the
+        two to the same bits)."""
         self.steps.add_(1.0)
         correction1 = 1.0 - self.beta1 ** self.steps
         correction2_sqrt = (1.0 - self.beta2 ** self.steps).sqrt()
         step_size = self.lr / correction1
         decay = 1.0 - self.lr * self.weight_decay
-        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq):
-            if p.grad is None:
-                continue
-            g = p.grad
-            p.mul_(decay)
-            m.lerp_(g, 1.0 - self.beta1)
-            v.mul_(self.beta2).addcmul_(g, g, value=1.0 - self.beta2)
-            denom = (v.sqrt() / correction2_sqrt).add_(self.eps)
-            p.sub_(step_size * m / denom)
+        live = [(p, m, v) for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq) if p.grad is not None]
+        if not live:
+            return
+        params, exp_avg, exp_avg_sq = (list(x) for x in zip(*live))
+        grads = [p.grad for p in params]
+        torch._foreach_mul_(params, decay)
+        moved = torch._foreach_sub(grads, exp_avg)  # m + (1 - beta1)(g - m): torch's lerp below 0.5,
+        torch._foreach_mul_(moved, 1.0 - self.beta1)  # spelt out (a foreach lerp reads a tensor weight
+        torch._foreach_add_(exp_avg, moved)  # back to the host, which a captured step cannot)
+        torch._foreach_mul_(exp_avg_sq, self.beta2)
+        torch._foreach_addcmul_(exp_avg_sq, grads, grads, value=1.0 - self.beta2)
+        denom = torch._foreach_sqrt(exp_avg_sq)
+        torch._foreach_div_(denom, correction2_sqrt)
+        torch._foreach_add_(denom, self.eps)
+        update = torch._foreach_mul(exp_avg, step_size)
+        torch._foreach_div_(update, denom)
+        torch._foreach_sub_(params, update)
