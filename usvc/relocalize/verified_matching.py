@@ -146,11 +146,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
-    pairs = []  # (image, first observation, query rows, image rows) of the pairs with enough matches
-    for (image, a, b), desc in zip(slices, descs):
-        qi, mi = mutual_ratio_matches(feats.descriptor, desc)
-        if len(qi) >= MIN_PAIR_INLIERS:
-            pairs.append((image, a, b, qi, mi))
+    scratch = _Scratch(max((b - a for _, a, b in slices), default=0) * len(feats))
 
     def verify(pair: tuple) -> np.ndarray | None:
         """The pair's inlier matches (query row, observation row within the image), or None."""
@@ -162,7 +158,18 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
         return inl if geometry.config in _VALID and len(inl) >= MIN_PAIR_INLIERS else None
 
-    inliers = _in_order(verify, pairs, threads)
+    def match_and_verify(image: tuple[tuple[int, int, int], np.ndarray]) -> tuple[tuple, np.ndarray | None] | None:
+        """The pair's matches (image, first observation, query rows, image rows) and their verified
+        inliers; None: fewer than MIN_PAIR_INLIERS matches."""
+        (image_id, a, b), desc = image
+        qi, mi = mutual_ratio_matches(feats.descriptor, desc, scratch.products())
+        if len(qi) < MIN_PAIR_INLIERS:
+            return None
+        pair = (image_id, a, b, qi, mi)
+        return pair, verify(pair)
+
+    found = [f for f in _in_order(match_and_verify, list(zip(slices, descs)), threads) if f is not None]
+    pairs, inliers = [f[0] for f in found], [f[1] for f in found]
     keypoint = [inl[:, 0] for inl in inliers if inl is not None]
     landmark = [obs.landmark[pair[1] + inl[:, 1]].astype(np.int64) for pair, inl in zip(pairs, inliers)
                 if inl is not None]
@@ -196,8 +203,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     chosen = [(obs.landmark[a:b], desc) for (_, a, b), desc in zip(slices, descs)
               if int(in_seen[obs.landmark[a:b]].sum()) >= MIN_PAIR_INLIERS]
 
-    scratch = threading.local()  # each thread's products, reused from image to image
-    most = max((len(rows) for rows, _ in chosen), default=0) * len(feats)
+    scratch = _Scratch(max((len(rows) for rows, _ in chosen), default=0) * len(feats))
     # (landmark, keypoint) pairs the pose puts within max_error_px of each other, found once: only
     # keypoints within reach of one of an image's landmarks can give a match the pose explains, so
     # the others are left out of that image's products (and so of its mutual test)
@@ -217,10 +223,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         near = np.zeros(len(feats), bool)
         near[reach_kp[mine[reach_lm]]] = True
         near = np.flatnonzero(near)
-        if getattr(scratch, "products", None) is None:
-            scratch.products = np.empty(most, np.float32)
         qi, mi = mutual_ratio_matches(feats.descriptor[near], desc if len(kept) == len(rows) else desc[kept],
-                                      scratch.products)
+                                      scratch.products())
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         qi = near[qi]
@@ -234,6 +238,20 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     lm = np.concatenate([m for _, m in pairs]) if pairs else np.zeros(0, np.int64)
     return VerifiedMatches(feats.uv[kp].reshape(-1, 2), landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(chosen),
                            sum(f is not None for f in found), len(pairs), time.perf_counter() - t0)
+
+
+class _Scratch:
+    """Each thread's float32 block for one image's descriptor products (`size` entries, made once per
+    thread and reused from image to image: a fresh block per image costs its page faults)."""
+
+    def __init__(self, size: int) -> None:
+        self.size, self._local = int(size), threading.local()
+
+    def products(self) -> np.ndarray:
+        block = getattr(self._local, "block", None)
+        if block is None:
+            block = self._local.block = np.empty(self.size, np.float32)
+        return block
 
 
 def _in_order(fn: Callable[[Item], Out], items: list[Item], threads: int) -> list[Out]:
