@@ -137,8 +137,9 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
     descriptors of each image's observations (`observation_descriptors`), computed once per map.
-    The pairs are verified on `threads` threads (COLMAP's RANSAC releases Python's lock; each pair
-    has its own seeded RANSAC, so the matches are the same bits whatever the count)."""
+    Each image is matched and its pair verified as one task, the tasks on `threads` threads (numpy's
+    products and COLMAP's RANSAC release Python's lock; each pair has its own seeded RANSAC, so the
+    matches are the same bits whatever the count)."""
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     options = pycolmap.TwoViewGeometryOptions()
