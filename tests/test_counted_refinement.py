@@ -9,14 +9,14 @@ import numpy as np
 import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
-from test_fallback import scene
+from test_fallback import N_POINTS, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
 
 from usvc.core.scene import Camera
 from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_counted, refine_weighted
 from usvc.relocalize.pnp import project_points, refine_on_inliers
 from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import observation_descriptors, pose_checked_matches
+from usvc.relocalize.verified_matching import observation_descriptors, pose_checked_matches, verified_matches
 
 R_START = Rotation.from_rotvec([0.0, 0.004, 0.002]).as_matrix() @ R_TRUE  # ~0.26 deg off
 T_START = T_TRUE + np.array([0.003, -0.002, 0.004])
@@ -129,3 +129,16 @@ def test_a_keypoint_out_of_the_poses_reach_does_not_take_a_landmark_from_the_one
     found = pose_checked_matches(landmarks, copied, CAM, R_TRUE, T_TRUE, every, 2.0)
     assert np.array_equal(found.keypoint, base.keypoint) and np.array_equal(found.landmark, base.landmark)
     assert image == obs.image_slices()[0][0]
+
+
+def test_per_image_matching_on_a_device_is_numpys():
+    """A relocalizer on a GPU computes the per-image products there (`device_matching.mutual_reductions`);
+    forced onto the CPU, torch's path gives numpy's matches, verified or pose-checked."""
+    landmarks, feats = scene()
+    every = np.arange(len(landmarks))
+    for run in (lambda d: verified_matches(landmarks, feats, CAM, seed=3, threads=2, device=d),
+                lambda d: pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every, 2.0, threads=2, device=d)):
+        on_numpy, on_torch = run(None), run("cpu")
+        assert len(on_numpy) > N_POINTS
+        for name in ("uv", "xyz", "landmark", "keypoint"):
+            assert np.array_equal(getattr(on_torch, name), getattr(on_numpy, name)), name

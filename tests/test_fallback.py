@@ -143,7 +143,8 @@ def test_mutual_ratio_matching_keeps_only_clear_mutual_nearest_neighbours():
     assert len(mutual_ratio_matches(query[:1].astype(np.float32), confusable.astype(np.float32))[0]) == 0
 
 
-def test_mutual_ratio_matching_is_the_argmax_definition_with_ties():
+@pytest.mark.parametrize("device", [None, "cpu"])  # numpy's products; torch's (a GPU's path) forced onto the CPU
+def test_mutual_ratio_matching_is_the_argmax_definition_with_ties(device):
     """The mutual test by column maxima gives np.argmax's answer (the first row of a column's largest
     entry), also where several rows reach it: duplicated keypoints tie exactly."""
     rng = np.random.default_rng(1)
@@ -153,7 +154,7 @@ def test_mutual_ratio_matching_is_the_argmax_definition_with_ties():
                                                  rng.random((15, 128)) ** 4])).astype(np.float32)
         query = np.concatenate([query, query[rng.integers(0, 25, 5)]])  # exact duplicates: ties in a column
         query = query[rng.permutation(len(query))]
-        q, m = mutual_ratio_matches(query, image)
+        q, m = mutual_ratio_matches(query, image, device=device)
         sim = query @ image.T
         first = np.argmax(sim, axis=1)
         s1 = sim[np.arange(len(query)), first]

@@ -68,3 +68,26 @@ def best_two_and_column_max(query: np.ndarray, landmarks: np.ndarray,
             best_i = torch.where(values[:, 0] > best[:, 0], index[:, 0] + start, best_i)
             best = torch.sort(torch.cat([best, values], dim=1), dim=1, descending=True).values[:, :2]
         return best.cpu().numpy(), best_i.cpu().numpy(), lm_max.cpu().numpy()
+
+
+def mutual_reductions(query: np.ndarray, image: np.ndarray,
+                      device: str | torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What COLMAP's matcher rules need of the query x image similarities (`verified_matching.
+    mutual_ratio_matches`), computed on `device`: per query row the column of its largest entry
+    (the first on ties), the largest and the second largest (-inf for a single column); per image
+    column the first row that reaches its largest entry. numpy's argmax rule throughout: torch's
+    argmax returns the first maximal index too."""
+    device = torch.device(device)
+    with torch.inference_mode():
+        sim = _tensor(query, device) @ _tensor(image, device).T  # (K, n)
+        rows = torch.arange(sim.shape[0], device=device)
+        first = torch.argmax(sim, dim=1)
+        s1 = sim[rows, first]
+        reach = torch.argmax((sim == sim.max(dim=0, keepdim=True).values).to(torch.uint8), dim=0)
+        if sim.shape[1] > 1:
+            sim[rows, first] = float("-inf")
+            s2 = sim.max(dim=1).values
+        else:
+            s2 = torch.full_like(s1, float("-inf"))
+        return (first.cpu().numpy().astype(np.int64), s1.cpu().numpy(), s2.cpu().numpy(),
+                reach.cpu().numpy().astype(np.int64))

@@ -365,7 +365,7 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
     scale = min(camera.width, camera.height) / landmarks.image_short_side
     found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, VERIFIED_MAX_ERROR_PX * scale,
-                                 image_descriptors, opts.threads)
+                                 image_descriptors, opts.threads, opts.device)
     rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
     res = refine_counted(found.uv[rows], found.xyz[rows], counts, camera, out.R, out.t,
                          VERIFIED_MAX_ERROR_PX * scale) if len(found) >= opts.min_inliers else None

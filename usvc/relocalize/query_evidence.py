@@ -72,7 +72,7 @@ class QueryEvidence:
             return None
         if self._verified is None:
             self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
-                                              self.observation_desc, self.opts.threads)
+                                              self.observation_desc, self.opts.threads, self.opts.device)
         return self._verified
 
     def verified_record(self) -> dict | None:

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, unit_descriptors
+from usvc.relocalize.device_matching import mutual_reductions
 from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_features import QueryFeatures
 
@@ -69,14 +70,20 @@ class VerifiedMatches:
                 "correspondences": len(self)}
 
 
-def mutual_ratio_matches(query: np.ndarray, image: np.ndarray,
-                         scratch: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def mutual_ratio_matches(query: np.ndarray, image: np.ndarray, scratch: np.ndarray | None = None,
+                         device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(query rows, image rows) matched as COLMAP's CPU matcher does for two sets of unit
     descriptors: nearest by angle, within MAX_DISTANCE, ratio test, mutual nearest. `scratch`: a
     float32 array of at least K x n entries to hold the products (a fresh one per call costs its
-    page faults: ~a third of the products' own time on mini's images)."""
+    page faults: ~a third of the products' own time on mini's images). With a torch `device` the
+    products and their reductions run there (`device_matching.mutual_reductions`), the same rules."""
     if len(query) == 0 or len(image) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if device is not None:
+        first, s1, s2, reach = mutual_reductions(query, image, device)
+        q = _ratio_passes(s1, s2)
+        q = q[reach[first[q]] == q]  # the first row to reach its column's largest entry: mutual
+        return q, first[q]
     out = None if scratch is None or scratch.size < len(query) * len(image) or scratch.dtype != np.float32 \
         or query.dtype != np.float32 or image.dtype != np.float32 \
         else scratch[:len(query) * len(image)].reshape(len(query), len(image))
@@ -90,10 +97,15 @@ def mutual_ratio_matches(query: np.ndarray, image: np.ndarray,
         sim[rows, first] = s1  # restore for the mutual check
     else:
         s2 = np.full(len(query), -np.inf, np.float32)
+    return _mutual(sim, _ratio_passes(s1, s2), first)
+
+
+def _ratio_passes(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    """The rows whose nearest column (similarity s1; s2 the second) is within MAX_DISTANCE and
+    passes the ratio test, by angle as COLMAP's matcher measures it."""
     d1 = np.arccos(np.clip(s1, -1.0, 1.0))
     d2 = np.where(np.isfinite(s2), np.arccos(np.clip(s2, -1.0, 1.0)), np.inf)
-    q = np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2))
-    return _mutual(sim, q, first)
+    return np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2))
 
 
 def _mutual(sim: np.ndarray, q: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,14 +144,16 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[np.ndarray] | None
 
 
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
-                     image_descriptors: list[np.ndarray] | None = None, threads: int = 1) -> VerifiedMatches:
+                     image_descriptors: list[np.ndarray] | None = None, threads: int = 1,
+                     device: str | None = None) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
     `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
     descriptors of each image's observations (`observation_descriptors`), computed once per map.
     Each image is matched and its pair verified as one task, the tasks on `threads` threads (numpy's
     products and COLMAP's RANSAC release Python's lock; each pair has its own seeded RANSAC, so the
-    matches are the same bits whatever the count)."""
+    matches are the same bits whatever the count). With a torch `device` (a GPU) the descriptor
+    products run there (`mutual_ratio_matches`)."""
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     options = pycolmap.TwoViewGeometryOptions()
@@ -163,7 +177,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         """The pair's matches (image, first observation, query rows, image rows) and their verified
         inliers; None: fewer than MIN_PAIR_INLIERS matches."""
         (image_id, a, b), desc = image
-        qi, mi = mutual_ratio_matches(feats.descriptor, desc, scratch.products())
+        qi, mi = mutual_ratio_matches(feats.descriptor, desc, None if device else scratch.products(), device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         pair = (image_id, a, b, qi, mi)
@@ -183,7 +197,8 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
 
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
                          seen: np.ndarray, max_error_px: float,
-                         image_descriptors: list[np.ndarray] | None = None, threads: int = 1) -> VerifiedMatches:
+                         image_descriptors: list[np.ndarray] | None = None, threads: int = 1,
+                         device: str | None = None) -> VerifiedMatches:
     """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
     keypoints matched as `verified_matches` matches them, but only to the mapping images that
     observe at least MIN_PAIR_INLIERS of the landmarks in `seen` (the rows the pose was found with)
@@ -194,7 +209,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     the keypoints within `max_error_px` of one of an image's landmarks under the pose are compared
     with that image's observations (about a third of them): the others could give no match the pose
     explains, and so take no part in the mutual test either. The images are matched on `threads`
-    threads (numpy's products release Python's lock), in order."""
+    threads (numpy's products release Python's lock), in order; with a torch `device` (a GPU) the
+    products run there."""
     t0 = time.perf_counter()
     obs, slices, descs = _per_image(landmarks, image_descriptors)
     uv_lm, depth = project_points(camera, landmarks.xyz, R, t)
@@ -225,7 +241,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         near[reach_kp[mine[reach_lm]]] = True
         near = np.flatnonzero(near)
         qi, mi = mutual_ratio_matches(feats.descriptor[near], desc if len(kept) == len(rows) else desc[kept],
-                                      scratch.products())
+                                      None if device else scratch.products(), device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         qi = near[qi]
