@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 from test_fallback import N_POINTS, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
@@ -131,14 +132,16 @@ def test_a_keypoint_out_of_the_poses_reach_does_not_take_a_landmark_from_the_one
     assert image == obs.image_slices()[0][0]
 
 
-def test_per_image_matching_on_a_device_is_numpys():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
+    pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")])])
+def test_per_image_matching_on_a_device_is_numpys(device):
     """A relocalizer on a GPU computes the per-image products there (`device_matching.mutual_reductions`);
-    forced onto the CPU, torch's path gives numpy's matches, verified or pose-checked."""
+    torch's path (on the CPU, or the card) gives numpy's matches, verified or pose-checked."""
     landmarks, feats = scene()
     every = np.arange(len(landmarks))
     for run in (lambda d: verified_matches(landmarks, feats, CAM, seed=3, threads=2, device=d),
                 lambda d: pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every, 2.0, threads=2, device=d)):
-        on_numpy, on_torch = run(None), run("cpu")
+        on_numpy, on_torch = run(None), run(device)
         assert len(on_numpy) > N_POINTS
         for name in ("uv", "xyz", "landmark", "keypoint"):
             assert np.array_equal(getattr(on_torch, name), getattr(on_numpy, name)), name
