@@ -14,7 +14,7 @@ from test_fallback import N_POINTS, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
 
 from usvc.core.scene import Camera
-from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_counted, refine_weighted
+from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_weighted
 from usvc.relocalize.pnp import project_points, refine_on_inliers
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import observation_descriptors, pose_checked_matches, verified_matches
@@ -69,17 +69,17 @@ def test_weighted_refinement_is_colmaps_on_the_repetitions():
     assert _pose_gap(once[:2], (R, t))[1] > 10 * shift
 
 
-def test_counted_refinement_equals_the_repeated_one_and_fails_like_it():
+def test_refinement_with_counts_equals_the_repeated_one_and_fails_like_it():
     uv, xyz, counts = _correspondences(1)
     rows = np.repeat(np.arange(len(uv)), counts)
-    counted = refine_counted(uv, xyz, counts, CAM, R_START, T_START, 4.0)
+    counted = refine_on_inliers(uv, xyz, CAM, R_START, T_START, 4.0, counts=counts)
     repeated = refine_on_inliers(uv[rows], xyz[rows], CAM, R_START, T_START, 4.0)
     assert counted.success and repeated.success
     angle, shift = _pose_gap((counted.R, counted.t), (repeated.R, repeated.t))
     assert angle < 1e-3 and shift < 1e-4  # COLMAP stops at its own tolerance; both near the truth
     assert errors(counted.R, counted.t)[0] < errors(R_START, T_START)[0] / 2
     assert counted.inlier_mask.shape == (len(uv),) and np.array_equal(counted.inlier_mask[rows], repeated.inlier_mask)
-    far = refine_counted(uv, xyz, counts, CAM, R_TRUE, T_TRUE + np.array([1.0, 0.0, 0.0]), 4.0)
+    far = refine_on_inliers(uv, xyz, CAM, R_TRUE, T_TRUE + np.array([1.0, 0.0, 0.0]), 4.0, counts=counts)
     assert not far.success and np.isnan(far.R).all() and np.isnan(far.t).all()
 
 
@@ -92,13 +92,13 @@ def test_a_distorted_camera_gets_colmaps_refinement_on_the_repetitions():
     with pytest.raises(ValueError, match="undistorted"):
         refine_weighted(uv, xyz, counts, bent, R_START, T_START)
     rows = np.repeat(np.arange(len(uv)), counts)
-    res = refine_counted(uv, xyz, counts, bent, R_START, T_START, 4.0)
+    res = refine_on_inliers(uv, xyz, bent, R_START, T_START, 4.0, counts=counts)
     colmap = refine_on_inliers(uv[rows], xyz[rows], bent, R_START, T_START, 4.0)
     assert res.success and np.array_equal(res.R, colmap.R) and np.array_equal(res.t, colmap.t)
     assert res.inlier_mask.shape == (len(uv),) and res.num_inliers == int(res.inlier_mask.sum())
-    plain = refine_counted(uv, xyz, counts, radial, R_START, T_START, 4.0)  # = the same pinhole's
-    pinhole = refine_counted(uv, xyz, counts, Camera("PINHOLE", CAM.width, CAM.height, (fx, fx, cx, cy)), R_START,
-                             T_START, 4.0)
+    plain = refine_on_inliers(uv, xyz, radial, R_START, T_START, 4.0, counts=counts)  # = the same pinhole's
+    pinhole = refine_on_inliers(uv, xyz, Camera("PINHOLE", CAM.width, CAM.height, (fx, fx, cx, cy)), R_START,
+                                T_START, 4.0, counts=counts)
     assert plain.success and np.array_equal(plain.R, pinhole.R) and np.array_equal(plain.t, pinhole.t)
 
 

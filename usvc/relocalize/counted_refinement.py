@@ -4,21 +4,18 @@ per mapping image it matched in, so the same (keypoint, landmark) pair is often 
 the robust cost over all of them equals the cost over the distinct pairs, each weighted by its
 count. COLMAP's refinement (`pycolmap.refine_absolute_pose`: Cauchy loss of scale 1 px on the
 reprojection error, Levenberg-Marquardt) has no weights in its Python API, so it had to be given
-every repetition: ~21 ms a call on mini's. `refine_counted` minimises the same objective,
+every repetition: ~21 ms a call on mini's. `refine_weighted` minimises the same objective,
 sum over pairs of count x Cauchy(squared reprojection error), by Levenberg-Marquardt on the
-distinct pairs (a few ms), for undistorted (pinhole) cameras; a camera with distortion gets
-COLMAP's refinement on the repeated correspondences (`pnp.refine_on_inliers`). A test holds the
-two to the same pose."""
+distinct pairs (a few ms), for undistorted (pinhole) cameras; `pnp.refine_on_inliers(counts=...)`
+uses it (COLMAP's on the repetitions for a camera with distortion). A test holds the two to the
+same pose."""
 
 from __future__ import annotations
-
-import time
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from usvc.core.scene import Camera
-from usvc.relocalize.pnp import PnPResult, refine_on_inliers, reprojection_inliers
 
 LOSS_SCALE_PX = 1.0  # COLMAP's AbsolutePoseRefinementOptions.loss_function_scale
 MAX_ITERATIONS = 100  # COLMAP's max_num_iterations
@@ -96,35 +93,3 @@ def refine_weighted(uv: np.ndarray, xyz: np.ndarray, weight: np.ndarray, camera:
         if np.abs(step).max() < _STEP_TOLERANCE or fell <= _COST_TOLERANCE * max(cost, 1e-300):
             break
     return R, t, True
-
-
-def refine_counted(points2d: np.ndarray, points3d: np.ndarray, counts: np.ndarray, camera: Camera, R: np.ndarray,
-                   t: np.ndarray, max_error_px: float, rounds: int = 2) -> PnPResult:
-    """`pnp.refine_on_inliers` for distinct correspondences each standing for `counts` repetitions:
-    the pose refined on those it explains within `max_error_px` (weighted by their counts), then the
-    inliers again under the refined pose, `rounds` times. The inlier mask is over the distinct
-    correspondences. A camera with distortion: COLMAP's refinement on the repetitions themselves."""
-    counts = np.asarray(counts, np.int64)
-    if camera.has_distortion:
-        rows = np.repeat(np.arange(len(counts)), counts)
-        res = refine_on_inliers(np.asarray(points2d)[rows], np.asarray(points3d)[rows], camera, R, t, max_error_px,
-                                rounds)
-        mask = np.zeros(len(counts), bool)
-        mask[rows[res.inlier_mask]] = True
-        return PnPResult(res.success, res.R, res.t, mask, int(mask.sum()), res.seconds)
-    start = time.perf_counter()
-    p2 = np.asarray(points2d, np.float64).reshape(-1, 2)
-    p3 = np.asarray(points3d, np.float64).reshape(-1, 3)
-    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
-    mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
-    for _ in range(rounds):
-        if int(mask.sum()) < 4:
-            break
-        R, t, ok = refine_weighted(p2[mask], p3[mask], counts[mask], camera, R, t)
-        if not ok:
-            break
-        mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
-    else:
-        return PnPResult(True, R, t, mask, int(mask.sum()), time.perf_counter() - start)
-    return PnPResult(False, np.full((3, 3), np.nan), np.full(3, np.nan), mask, int(mask.sum()),
-                     time.perf_counter() - start)

@@ -27,10 +27,10 @@ from scipy.spatial import cKDTree
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.relocalize.counted_refinement import distinct_pairs, refine_counted
+from usvc.relocalize.counted_refinement import distinct_pairs
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import in_image, project_points, solve_pnp
+from usvc.relocalize.pnp import in_image, project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
 from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
@@ -367,8 +367,8 @@ def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, 
     found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, VERIFIED_MAX_ERROR_PX * scale,
                                  image_descriptors, opts.threads, opts.device)
     rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
-    res = refine_counted(found.uv[rows], found.xyz[rows], counts, camera, out.R, out.t,
-                         VERIFIED_MAX_ERROR_PX * scale) if len(found) >= opts.min_inliers else None
+    res = refine_on_inliers(found.uv[rows], found.xyz[rows], camera, out.R, out.t, VERIFIED_MAX_ERROR_PX * scale,
+                            counts=counts) if len(found) >= opts.min_inliers else None
     support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[rows][res.inlier_mask])))
     out.passes.append({"kind": "images", "radius_px": None, "candidates": int(found.images),
                        "matches": int(len(found)), "distinct_matches": int(len(rows)),

@@ -24,6 +24,7 @@ import pycolmap
 from usvc.core.absolute_pose import RANSAC_CONFIDENCE, RANSAC_MAX_TRIALS, absolute_pose_options
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
+from usvc.relocalize.counted_refinement import refine_weighted
 from usvc.relocalize.options import BACKENDS
 
 log = logging.getLogger(__name__)
@@ -184,27 +185,45 @@ def _solve_pycolmap(
 
 
 def refine_on_inliers(points2d: np.ndarray, points3d: np.ndarray, camera: Camera, R: np.ndarray, t: np.ndarray,
-                      max_error_px: float, rounds: int = 2) -> PnPResult:
+                      max_error_px: float, rounds: int = 2, counts: np.ndarray | None = None) -> PnPResult:
     """The pose (R, t) refined on the correspondences it explains within `max_error_px`: COLMAP's
     non-linear absolute-pose refinement (the last step of its LO-RANSAC), then the inliers again
     under the refined pose, `rounds` times. For correspondences a pose has already checked, where
     RANSAC's sampling would only find that pose again. Failure (success False) when the refinement
-    does not converge or fewer than 4 correspondences are inliers."""
+    does not converge or fewer than 4 correspondences are inliers.
+
+    With `counts`, each correspondence stands for that many repetitions of itself (SIFT + PnP counts
+    a match once per mapping image it was found in): the same objective over the repetitions, each
+    distinct correspondence weighted by its count (`counted_refinement.refine_weighted` for an
+    undistorted camera, a tenth of COLMAP's time on the repetitions; COLMAP's on the repetitions
+    for a camera with distortion). The inlier mask is over the given correspondences."""
+    if counts is not None and camera.has_distortion:
+        rows = np.repeat(np.arange(len(counts)), np.asarray(counts, np.int64))
+        res = refine_on_inliers(np.asarray(points2d)[rows], np.asarray(points3d)[rows], camera, R, t, max_error_px,
+                                rounds)
+        mask = np.zeros(len(counts), bool)
+        mask[rows[res.inlier_mask]] = True
+        return PnPResult(res.success, res.R, res.t, mask, int(mask.sum()), res.seconds)
     start = time.perf_counter()
     p2 = np.ascontiguousarray(points2d, dtype=np.float64)
     p3 = np.ascontiguousarray(points3d, dtype=np.float64)
     cam = _pycolmap_camera(camera)
-    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
     mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
     for _ in range(rounds):
         if int(mask.sum()) < 4:
             break
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
-        res = pycolmap.refine_absolute_pose(pose, p2, p3, mask, cam, pycolmap.AbsolutePoseRefinementOptions())
-        if res is None:
-            break
-        pose = res["cam_from_world"]
-        R, t = pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64)
+        if counts is not None:
+            R, t, converged = refine_weighted(p2[mask], p3[mask], np.asarray(counts)[mask], camera, R, t)
+            if not converged:
+                break
+        else:
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+            res = pycolmap.refine_absolute_pose(pose, p2, p3, mask, cam, pycolmap.AbsolutePoseRefinementOptions())
+            if res is None:
+                break
+            pose = res["cam_from_world"]
+            R, t = pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64)
         mask = reprojection_inliers(camera, p2, p3, R, t, max_error_px)
     else:
         return PnPResult(True, R, t, mask, int(mask.sum()), time.perf_counter() - start)
