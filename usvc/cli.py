@@ -16,7 +16,7 @@ from usvc.core.errors import UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
-from usvc.relocalize.options import FINAL, MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE
+from usvc.relocalize.options import FINAL, MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE, RelocalizeOptions
 from usvc.relocalize.photo_args import (
     UnreadablePhoto,
     expand_photos,
@@ -271,10 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --refine features: learned (default): the learned pose guides matching first, the "
                           "photo is matched as SIFT + PnP matches it when that leads nowhere; none: SIFT + PnP's "
                           "evidence alone (needs landmarks with observations)")
-    loc.add_argument("--final", choices=FINAL, default="guided",
-                     help="with --refine features: guided (default): the answer of the guided passes; images: then "
-                          "one more pass with SIFT + PnP's per-image matches around it (the baseline's precision, "
-                          "0.06-0.3 s more per photo on two cores)")
+    loc.add_argument("--final", choices=FINAL, default=RelocalizeOptions.features_final,
+                     help="with --refine features: confirmed (default): the guided answer's matches weighted by "
+                          "the mapping images whose SIFT + PnP matching finds them (the baseline's precision); "
+                          "guided: the guided passes' answer alone (faster); images: SIFT + PnP's per-image "
+                          "matches around it instead")
     loc.add_argument("--landmarks", help="the map's landmarks.h5 (default: found beside the map: landmarks.h5 in "
                                          "its folder, else ../landmarks/landmarks.h5)")
     loc.add_argument("--device", default="auto", help="torch device: auto (CUDA where torch sees one) | cpu | cuda | cuda:N")

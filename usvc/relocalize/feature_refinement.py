@@ -41,6 +41,11 @@ log = logging.getLogger(__name__)
 # which benchmarks/baseline_sift.py registers queries (usvc.sfm.posing.QUERY_MAX_ERROR_PX; a test
 # keeps the two equal without the query step importing the SfM step)
 VERIFIED_MAX_ERROR_PX = 4.0
+# The confirmed pass's pose check and refinement threshold, px at the mapping images' size: twice SIFT
+# + PnP's. The matches it confirms are the guided passes' (accepted at features_max_error_px), from a
+# pose a few px off on hard queries: at 4 px one bird query kept 35 of its 200 matches and its answer
+# moved by 1-7 rel cm with the RANSAC seed; at 8 px every figure held on all three seeds (docs/results.md).
+CONFIRM_MAX_ERROR_PX = 8.0
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
 _DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product on a device
@@ -72,7 +77,7 @@ class FeatureMatchOptions:
     min_inliers: int  # fewer PnP inliers than this: the pass failed
     view_margin_deg: float  # a landmark is matched up to this many degrees outside its mapped viewing cone
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
-    final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (`images_pass`)
+    final: str = "confirmed"  # the answer's last pass: confirmed (`confirmed_pass`) | guided (none) | images (`images_pass`)
     threads: int = 1  # the query's threads: SIFT + PnP's pairs and the images pass's images side by side on them
 
 
@@ -109,6 +114,7 @@ class FeatureResult:
     verified: dict | None = None  # what SIFT + PnP's matching took, when it ran (VerifiedMatches.record)
     verified_seconds: float | None = None  # its time
     agreement: dict | None = None  # a guided answer checked against the matches to every landmark (refine_by_features)
+    match_keypoint: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the matches' query keypoint rows
 
     @property
     def success(self) -> bool:
@@ -252,20 +258,22 @@ def _pnp(uv: np.ndarray, xyz: np.ndarray, camera: Camera, opts: FeatureMatchOpti
 
 def _guided_pass(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R: np.ndarray,
                  t: np.ndarray, radius: float, opts: FeatureMatchOptions, seed: int):
-    """One guided pass from (R, t): (PnP result or None, the pass's record, matched uv, matched xyz)."""
+    """One guided pass from (R, t): (PnP result or None, the pass's record, matched keypoint rows, their landmark rows)."""
     idx, uv = visible_landmarks(landmarks, camera, R, t, opts.view_margin_deg)
     li, ki = guided_matches(uv, lm_desc[idx], feats, radius, opts.ratio, opts.device)
     res = _pnp(feats.uv[ki], landmarks.xyz[idx[li]], camera, opts, seed)
     record = {"kind": "guided", "radius_px": radius, "candidates": int(len(idx)), "matches": int(len(li)),
               "inliers": 0 if res is None else res.num_inliers}
-    return res, record, feats.uv[ki], idx[li]
+    return res, record, ki, idx[li]
 
 
-def _accept(out: FeatureResult, res, uv: np.ndarray, landmarks: Landmarks, rows: np.ndarray,
-            inliers: int | None = None) -> None:
+def _accept(out: FeatureResult, res, feats: QueryFeatures, keypoint: np.ndarray, landmarks: Landmarks,
+            rows: np.ndarray, inliers: int | None = None) -> None:
+    """`res`'s pose becomes `out`'s, found with the matches of query keypoints `keypoint` to landmarks `rows`."""
     out.R, out.t = np.asarray(res.R, np.float64).copy(), np.asarray(res.t, np.float64).copy()
-    out.inliers, out.matches = res.num_inliers if inliers is None else inliers, len(uv)
-    out.match_uv, out.match_xyz, out.match_landmark = uv, landmarks.xyz[rows], rows
+    out.inliers, out.matches = res.num_inliers if inliers is None else inliers, len(keypoint)
+    out.match_uv, out.match_xyz, out.match_landmark = feats.uv[keypoint], landmarks.xyz[rows], rows
+    out.match_keypoint = np.asarray(keypoint, np.int64)
 
 
 def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
@@ -273,39 +281,40 @@ def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feat
     """Guided passes from `out`'s pose at the given radii, while they keep most of the support."""
     for radius in radii:
         assert out.R is not None and out.t is not None
-        res, record, uv, rows = _guided_pass(landmarks, lm_desc, feats, camera, out.R, out.t, radius, opts, seed)
+        res, record, kp, rows = _guided_pass(landmarks, lm_desc, feats, camera, out.R, out.t, radius, opts, seed)
         out.passes.append(record)
         if res is None or res.num_inliers < out.inliers // 2:
             break  # keep the last pose: a tighter radius that loses most support is not better
-        _accept(out, res, uv, landmarks, rows)
+        _accept(out, res, feats, kp, landmarks, rows)
 
 
 def from_prior(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R0: np.ndarray,
                t0: np.ndarray, opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
     """Guided passes from the learned pose (R0, t0): the first at the widest radius, then tighter."""
     out = FeatureResult(None, None)
-    res, record, uv, rows = _guided_pass(landmarks, lm_desc, feats, camera, R0, t0, opts.radii_px[0], opts, seed)
+    res, record, kp, rows = _guided_pass(landmarks, lm_desc, feats, camera, R0, t0, opts.radii_px[0], opts, seed)
     out.passes.append(record)
     if res is None:
         out.why = (f"features: the learned pose's guided pass found {record['matches']} matches, no pose with "
                    f"{opts.min_inliers} inliers")
         return out
     out.path = "guided"
-    _accept(out, res, uv, landmarks, rows)
+    _accept(out, res, feats, kp, landmarks, rows)
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
     return out
 
 
-def _from_correspondences(path: str, uv: np.ndarray, rows: np.ndarray, record: dict, landmarks: Landmarks,
+def _from_correspondences(path: str, keypoint: np.ndarray, rows: np.ndarray, record: dict, landmarks: Landmarks,
                           lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, opts: FeatureMatchOptions,
-                          seed: int, keypoint: np.ndarray | None = None, tighten: bool = True) -> FeatureResult:
-    """PnP on unguided correspondences (`path` names them), then guided passes to tighten (unless
-    not `tighten`). Support counts query keypoints: with `keypoint` (the keypoint row of each
-    correspondence, where one keypoint may give several), the distinct keypoints among the inliers,
-    as a guided pass counts."""
+                          seed: int, repeats: bool = False, tighten: bool = True) -> FeatureResult:
+    """PnP on unguided correspondences of query keypoints `keypoint` to landmarks `rows` (`path`
+    names them), then guided passes to tighten (unless not `tighten`). Support counts query
+    keypoints: where a keypoint may give several correspondences (`repeats`), the distinct
+    keypoints among the inliers, as a guided pass counts."""
     out = FeatureResult(None, None)
+    uv = feats.uv[keypoint]
     res = _pnp(uv, landmarks.xyz[rows], camera, opts, seed)
-    support = None if res is None or keypoint is None else int(len(np.unique(keypoint[res.inlier_mask])))
+    support = None if res is None or not repeats else int(len(np.unique(keypoint[res.inlier_mask])))
     if support is not None and support < opts.min_inliers:
         res = None
     out.passes.append({**record, "inliers": 0 if res is None else (support or res.num_inliers)})
@@ -314,7 +323,7 @@ def _from_correspondences(path: str, uv: np.ndarray, rows: np.ndarray, record: d
                    f"within {opts.max_error_px:g} px")
         return out
     out.path = path
-    _accept(out, res, uv, landmarks, rows, support)
+    _accept(out, res, feats, keypoint, landmarks, rows, support)
     if not tighten:
         return out
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
@@ -328,7 +337,7 @@ def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures,
     already computed: `global_matches`' landmark and keypoint rows), PnP, then tightened."""
     li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio, opts.device)
     record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
-    return _from_correspondences("global", feats.uv[ki], li, record, landmarks, lm_desc, feats, camera, opts, seed)
+    return _from_correspondences("global", ki, li, record, landmarks, lm_desc, feats, camera, opts, seed)
 
 
 def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
@@ -342,40 +351,101 @@ def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeature
               "matches": int(len(verified)), "verified_pairs": int(verified.verified_pairs)}
     scale = min(camera.width, camera.height) / landmarks.image_short_side
     strict = replace(opts, max_error_px=VERIFIED_MAX_ERROR_PX * scale)
-    return _from_correspondences("verified", verified.uv, verified.landmark, record, landmarks, lm_desc, feats,
-                                 camera, strict, seed, verified.keypoint, tighten=False)
+    return _from_correspondences("verified", verified.keypoint, verified.landmark, record, landmarks, lm_desc, feats,
+                                 camera, strict, seed, repeats=True, tighten=False)
 
 
-def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                opts: FeatureMatchOptions, seed: int = 0, image_descriptors: list[np.ndarray] | None = None) -> None:
-    """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
-    the query matched to the mapping images that observe the landmarks the answer was found with
-    (`pose_checked_matches`: per image, verified by the answer's pose within VERIFIED_MAX_ERROR_PX,
-    so only the keypoints within that of a landmark are compared: twice that compared ~2x the
-    keypoints for the same answers to a few per cent of the median, docs/results.md), and the pose
-    refined on those within VERIFIED_MAX_ERROR_PX again under each new pose (the Cauchy
-    loss of COLMAP's refinement, the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once
-    per image it matched in, as SIFT + PnP counts it: each distinct (keypoint, landmark) pair once,
-    weighted by that count (`counted_refinement`, the same objective at a tenth of the cost). That
-    count is what makes the baseline's pose the more precise one on mini: its correspondences
-    counted once each gave a worse median (docs/results.md).
-    Replaces `out`'s pose when at least min_inliers distinct keypoints support the new one."""
+def _images_evidence(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
+                     opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None,
+                     max_error_px: float = VERIFIED_MAX_ERROR_PX) -> tuple[VerifiedMatches, float]:
+    """SIFT + PnP's per-image matches around `out`'s answer (`pose_checked_matches`: the mapping
+    images that observe the landmarks it explains, each image's matches verified by its pose within
+    `max_error_px` at the mapping images' size, so only the keypoints within that of a landmark are
+    compared), and that threshold in px of the query's feature image."""
     assert out.R is not None and out.t is not None
     uv, _ = project_points(camera, out.match_xyz, out.R, out.t)
     seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
-    scale = min(camera.width, camera.height) / landmarks.image_short_side
-    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, VERIFIED_MAX_ERROR_PX * scale,
-                                 image_descriptors, opts.threads, opts.device)
+    max_error = max_error_px * min(camera.width, camera.height) / landmarks.image_short_side
+    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, max_error, image_descriptors,
+                                 opts.threads, opts.device)
+    return found, max_error
+
+
+def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
+                opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
+    """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
+    the per-image matches of `_images_evidence` replace the answer's matches, and the pose is refined
+    on those within VERIFIED_MAX_ERROR_PX again under each new pose (the Cauchy loss of COLMAP's
+    refinement, the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once per image it
+    matched in, as SIFT + PnP counts it: each distinct (keypoint, landmark) pair once, weighted by that
+    count (`counted_refinement`, the same objective at a tenth of the cost). That count is what makes
+    the baseline's pose the more precise one on mini: its correspondences counted once each gave a
+    worse median (docs/results.md). Its pose check is SIFT + PnP's VERIFIED_MAX_ERROR_PX: twice that
+    compared ~2x the keypoints for the same answers to a few per cent of the median (docs/results.md).
+    Replaces `out`'s pose when at least min_inliers distinct keypoints support the new one."""
+    found, max_error = _images_evidence(out, landmarks, feats, camera, opts, image_descriptors)
     rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
-    res = refine_on_inliers(found.uv[rows], found.xyz[rows], camera, out.R, out.t, VERIFIED_MAX_ERROR_PX * scale,
+    res = refine_on_inliers(found.uv[rows], found.xyz[rows], camera, out.R, out.t, max_error,
                             counts=counts) if len(found) >= opts.min_inliers else None
     support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[rows][res.inlier_mask])))
     out.passes.append({"kind": "images", "radius_px": None, "candidates": int(found.images),
                        "matches": int(len(found)), "distinct_matches": int(len(rows)),
                        "verified_pairs": int(found.verified_pairs), "inliers": support})
     if support >= opts.min_inliers:
-        _accept(out, res, found.uv[rows], landmarks, found.landmark[rows], support)
+        _accept(out, res, feats, found.keypoint[rows], landmarks, found.landmark[rows], support)
         out.matches = len(found)
+
+
+def confirmations(keypoint: np.ndarray, landmark: np.ndarray, found_keypoint: np.ndarray,
+                  found_landmark: np.ndarray) -> np.ndarray:
+    """For each match (keypoint[i], landmark[i]): how many of the found correspondences (one per
+    mapping image that gave it) are that same (keypoint, landmark) pair; 0 where none is."""
+    keypoint, landmark = np.asarray(keypoint, np.int64), np.asarray(landmark, np.int64)
+    if len(keypoint) == 0 or len(found_keypoint) == 0:
+        return np.zeros(len(keypoint), np.int64)
+    base = int(max(np.max(landmark), np.max(found_landmark))) + 1
+    keys, counts = np.unique(np.asarray(found_keypoint, np.int64) * base + np.asarray(found_landmark, np.int64),
+                             return_counts=True)
+    mine = keypoint * base + landmark
+    at = np.minimum(np.searchsorted(keys, mine), len(keys) - 1)
+    return np.where(keys[at] == mine, counts[at], 0)
+
+
+def keypoint_sites(uv: np.ndarray) -> np.ndarray:
+    """Each keypoint's site: the first keypoint at exactly its position (SIFT gives a location one
+    keypoint per dominant orientation, each with its own descriptor, all the same measurement)."""
+    if len(uv) == 0:
+        return np.zeros(0, np.int64)
+    _, first, inverse = np.unique(np.asarray(uv), axis=0, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
+
+
+def confirmed_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
+                   opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
+    """The answer's last pass (relocalize.features_final=confirmed, the default): each of the
+    answer's own matches weighted by the number of mapping images in which SIFT + PnP's per-image
+    matching (`_images_evidence`: nearest observation by descriptor, ratio and mutual tests against
+    every visible observation of the image, the answer's pose within CONFIRM_MAX_ERROR_PX) finds
+    that same (keypoint site, landmark) pair; a match no image confirms is dropped. The pose is
+    refined on the confirmed matches within CONFIRM_MAX_ERROR_PX (`refine_on_inliers` with those
+    counts: the objective SIFT + PnP's refinement would have over the repetitions, whose Cauchy loss
+    of 1 px scale leaves the far ones little weight). The baseline's weighting on
+    the guided matches: on mini, bird and office at least SIFT + PnP's precision, where its own
+    matches instead of the guided ones (`images_pass`) lose a bird query at (2cm,2°) (docs/results.md).
+    Replaces `out`'s pose when at least min_inliers confirmed keypoints support the new one."""
+    found, max_error = _images_evidence(out, landmarks, feats, camera, opts, image_descriptors, CONFIRM_MAX_ERROR_PX)
+    site = keypoint_sites(feats.uv)  # SIFT's orientations of one location are one measurement
+    weight = confirmations(site[out.match_keypoint], out.match_landmark, site[found.keypoint], found.landmark)
+    kept = np.flatnonzero(weight > 0)
+    res = refine_on_inliers(out.match_uv[kept], out.match_xyz[kept], camera, out.R, out.t, max_error,
+                            counts=weight[kept]) if len(kept) >= opts.min_inliers else None
+    support = 0 if res is None or not res.success else int(len(np.unique(out.match_keypoint[kept][res.inlier_mask])))
+    out.passes.append({"kind": "confirmed", "radius_px": None, "candidates": int(found.images),
+                       "matches": int(len(out.match_keypoint)), "confirmed": int(len(kept)),
+                       "confirmations": int(weight.sum()), "verified_pairs": int(found.verified_pairs),
+                       "inliers": support})
+    if support >= opts.min_inliers:
+        _accept(out, res, feats, out.match_keypoint[kept], landmarks, out.match_landmark[kept], support)
 
 
 def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
@@ -384,7 +454,7 @@ def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
     found = [h for h in hypotheses if h.success]
     best = max(found, key=lambda h: h.inliers) if found else FeatureResult(None, None)
     best = FeatureResult(best.R, best.t, best.inliers, best.matches, best.path, [], best.match_uv, best.match_xyz,
-                         best.match_landmark, best.why)
+                         best.match_landmark, best.why, match_keypoint=best.match_keypoint)
     for h in hypotheses:
         best.passes.extend(h.passes)
     best.tried = [{"path": h.path or h.passes[0]["kind"], "inliers": h.inliers if h.success else 0,
@@ -434,6 +504,7 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                 hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
                                               global_pairs() if global_pairs is not None else None))
             best = best_hypothesis(hypotheses)
-    if opts.final == "images" and best.success and best.path != "verified" and landmarks.observations is not None:
-        images_pass(best, landmarks, feats, camera, opts, seed, image_descriptors)
+    if opts.final != "guided" and best.success and best.path != "verified" and landmarks.observations is not None:
+        (images_pass if opts.final == "images" else confirmed_pass)(best, landmarks, feats, camera, opts,
+                                                                      image_descriptors)
     return best

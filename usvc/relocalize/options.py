@@ -15,7 +15,7 @@ BACKENDS = ("pycolmap", "opencv")
 REFINE = ("features", "keypoints", "none")
 PRIORS = ("learned", "none")  # what guides refinement by features first
 EXTRACTORS = ("auto", "opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
-FINAL = ("guided", "images")  # refinement by features' last evidence (usvc/relocalize/feature_refinement.py)
+FINAL = ("confirmed", "guided", "images")  # refinement by features' last pass (usvc/relocalize/feature_refinement.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
 # cell "agrees" with a pose far off, so confidence says nothing.
@@ -56,7 +56,7 @@ class RelocalizeOptions:
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
-    features_final: str = "guided"  # the answer's last evidence: guided (its guided passes) | images (then SIFT + PnP's per-image matches around it, checked by its pose at 4 px, refined at 4 px: the baseline's weighting, more precise on mini and bird, +20-60 ms a 640 x 480 query)
+    features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 30-60 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
