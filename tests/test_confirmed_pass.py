@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_fallback import MAPPING, N_POINTS, WRONG, _map, scene
+from scipy.spatial.transform import Rotation
 from test_refinement import CAM, R_TRUE, T_TRUE, errors, photo
 
 from usvc.relocalize.feature_refinement import (
@@ -122,3 +123,33 @@ def test_the_default_ends_with_the_confirmed_pass(tmp_path: Path, monkeypatch, l
         assert default.to_json()["refinement"]["passes"][-1]["confirmed"] >= 0.8 * N_POINTS
     rot, trans = errors(default.R, default.t)
     assert rot < 0.2 and trans < 0.01
+
+
+def test_a_pose_a_few_pixels_off_is_confirmed_and_corrected(monkeypatch):
+    """The pass confirms the guided matches of a pose ~6 px off (its check is CONFIRM_MAX_ERROR_PX,
+    8 px, not SIFT + PnP's 4) and refines it onto the truth; at 4 px the same answer confirms almost
+    nothing and is kept as it was."""
+    import usvc.relocalize.feature_refinement as feature_refinement
+
+    landmarks, feats = scene()
+    # the answer's inliers, which choose the images, at the guided threshold of a 480 px image (7.5 px here)
+    opts = feature_options(RelocalizeOptions(features_max_error_px=30.0), CAM.height)
+    right = np.arange(N_POINTS)
+    turn = Rotation.from_rotvec([0.0, 6.0 / CAM.focal[0], 0.0]).as_matrix()  # about the camera centre: ~6 px
+    R_off, off = turn @ R_TRUE, turn @ T_TRUE
+
+    def answer() -> FeatureResult:
+        out = FeatureResult(None, None, path="guided")
+        _accept(out, PnPResult(True, R_off, off, np.ones(N_POINTS, bool), N_POINTS, 0.0), feats, right, landmarks,
+                right)
+        return out
+
+    out = answer()
+    confirmed_pass(out, landmarks, feats, CAM, opts, observation_descriptors(landmarks.observations))
+    assert out.passes[-1]["confirmed"] >= 0.8 * N_POINTS
+    rot, trans = errors(out.R, out.t)
+    assert rot < 0.2 < errors(R_off, off)[0] and trans < 0.01
+    monkeypatch.setattr(feature_refinement, "CONFIRM_MAX_ERROR_PX", feature_refinement.VERIFIED_MAX_ERROR_PX)
+    out = answer()
+    confirmed_pass(out, landmarks, feats, CAM, opts, observation_descriptors(landmarks.observations))
+    assert out.passes[-1]["confirmed"] < 0.2 * N_POINTS and np.array_equal(out.t, off)
