@@ -12,18 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_fallback import MAPPING, N_POINTS, WRONG, _map, scene
 from scipy.spatial.transform import Rotation
+from test_fallback import MAPPING, N_POINTS, WRONG, _map, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors, photo
 
-from usvc.relocalize.feature_refinement import (
-    FeatureResult,
-    _accept,
-    confirmations,
-    confirmed_pass,
-    feature_options,
-    keypoint_sites,
-)
+from usvc.relocalize import last_pass as last_pass_module
+from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX, FeatureResult, accept, feature_options
+from usvc.relocalize.last_pass import confirmations, confirmed_pass, keypoint_sites
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.pnp import PnPResult
 from usvc.relocalize.relocalizer import Relocalizer
@@ -53,7 +48,7 @@ def test_keypoint_sites_join_the_orientations_of_one_location():
 def _answer(landmarks, feats, keypoint: np.ndarray, rows: np.ndarray) -> FeatureResult:
     """A guided answer at the true pose found with these matches."""
     out = FeatureResult(None, None, path="guided")
-    _accept(out, PnPResult(True, R_TRUE, T_TRUE, np.ones(len(rows), bool), len(rows), 0.0), feats, keypoint,
+    accept(out, PnPResult(True, R_TRUE, T_TRUE, np.ones(len(rows), bool), len(rows), 0.0), feats, keypoint,
             landmarks, rows)
     return out
 
@@ -129,8 +124,6 @@ def test_a_pose_a_few_pixels_off_is_confirmed_and_corrected(monkeypatch):
     """The pass confirms the guided matches of a pose ~6 px off (its check is CONFIRM_MAX_ERROR_PX,
     8 px, not SIFT + PnP's 4) and refines it onto the truth; at 4 px the same answer confirms almost
     nothing and is kept as it was."""
-    import usvc.relocalize.feature_refinement as feature_refinement
-
     landmarks, feats = scene()
     # the answer's inliers, which choose the images, at the guided threshold of a 480 px image (7.5 px here)
     opts = feature_options(RelocalizeOptions(features_max_error_px=30.0), CAM.height)
@@ -140,7 +133,7 @@ def test_a_pose_a_few_pixels_off_is_confirmed_and_corrected(monkeypatch):
 
     def answer() -> FeatureResult:
         out = FeatureResult(None, None, path="guided")
-        _accept(out, PnPResult(True, R_off, off, np.ones(N_POINTS, bool), N_POINTS, 0.0), feats, right, landmarks,
+        accept(out, PnPResult(True, R_off, off, np.ones(N_POINTS, bool), N_POINTS, 0.0), feats, right, landmarks,
                 right)
         return out
 
@@ -149,7 +142,7 @@ def test_a_pose_a_few_pixels_off_is_confirmed_and_corrected(monkeypatch):
     assert out.passes[-1]["confirmed"] >= 0.8 * N_POINTS
     rot, trans = errors(out.R, out.t)
     assert rot < 0.2 < errors(R_off, off)[0] and trans < 0.01
-    monkeypatch.setattr(feature_refinement, "CONFIRM_MAX_ERROR_PX", feature_refinement.VERIFIED_MAX_ERROR_PX)
+    monkeypatch.setattr(last_pass_module, "CONFIRM_MAX_ERROR_PX", VERIFIED_MAX_ERROR_PX)
     out = answer()
     confirmed_pass(out, landmarks, feats, CAM, opts, observation_descriptors(landmarks.observations))
     assert out.passes[-1]["confirmed"] < 0.2 * N_POINTS and np.array_equal(out.t, off)

@@ -17,6 +17,7 @@ from usvc.relocalize.camera_checks import stretch_verdict
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_job import Job, QueryFeatureSet
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, feature_options, refine_by_features
+from usvc.relocalize.last_pass import last_pass
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_evidence import QueryEvidence
 from usvc.relocalize.query_features import QueryFeatures
@@ -93,8 +94,8 @@ class FeatureAnswers:
         assert self.landmarks is not None
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed, verified=evidence.verified, use_global=evidence.use_global,
-                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior,
-                                   image_descriptors=self._observation_desc, agreement=agreement)
+                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior, agreement=agreement)
+        found = last_pass(found, self.landmarks, feats, camera, opts, self._observation_desc)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()
         return found

@@ -27,13 +27,12 @@ from scipy.spatial import cKDTree
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.relocalize.counted_refinement import distinct_pairs
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
-from usvc.relocalize.pnp import in_image, project_points, refine_on_inliers, solve_pnp
+from usvc.relocalize.pnp import in_image, project_points, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
-from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
+from usvc.relocalize.verified_matching import VerifiedMatches
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +40,6 @@ log = logging.getLogger(__name__)
 # which benchmarks/baseline_sift.py registers queries (usvc.sfm.posing.QUERY_MAX_ERROR_PX; a test
 # keeps the two equal without the query step importing the SfM step)
 VERIFIED_MAX_ERROR_PX = 4.0
-# The confirmed pass's pose check and refinement threshold, px at the mapping images' size: twice SIFT
-# + PnP's. The matches it confirms are the guided passes' (accepted at features_max_error_px), from a
-# pose a few px off on hard queries: at 4 px one bird query kept 35 of its 200 matches and its answer
-# moved by 1-7 rel cm with the RANSAC seed; at 8 px every figure held on all three seeds (docs/results.md).
-CONFIRM_MAX_ERROR_PX = 8.0
 _CHUNK = 2048  # rows of a descriptor-distance block (memory ~ CHUNK x keypoints x 4 bytes)
 _PAIRS = 65536  # (landmark, keypoint) pairs compared at a time in guided matching
 _DENSE_SIMILARITY = 8_000_000  # up to this many landmark x keypoint entries (32 MB), one matrix product on a device
@@ -267,7 +261,7 @@ def _guided_pass(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures
     return res, record, ki, idx[li]
 
 
-def _accept(out: FeatureResult, res, feats: QueryFeatures, keypoint: np.ndarray, landmarks: Landmarks,
+def accept(out: FeatureResult, res, feats: QueryFeatures, keypoint: np.ndarray, landmarks: Landmarks,
             rows: np.ndarray, inliers: int | None = None) -> None:
     """`res`'s pose becomes `out`'s, found with the matches of query keypoints `keypoint` to landmarks `rows`."""
     out.R, out.t = np.asarray(res.R, np.float64).copy(), np.asarray(res.t, np.float64).copy()
@@ -285,7 +279,7 @@ def _tighten(out: FeatureResult, landmarks: Landmarks, lm_desc: np.ndarray, feat
         out.passes.append(record)
         if res is None or res.num_inliers < out.inliers // 2:
             break  # keep the last pose: a tighter radius that loses most support is not better
-        _accept(out, res, feats, kp, landmarks, rows)
+        accept(out, res, feats, kp, landmarks, rows)
 
 
 def from_prior(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera, R0: np.ndarray,
@@ -299,7 +293,7 @@ def from_prior(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, 
                    f"{opts.min_inliers} inliers")
         return out
     out.path = "guided"
-    _accept(out, res, feats, kp, landmarks, rows)
+    accept(out, res, feats, kp, landmarks, rows)
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
     return out
 
@@ -323,7 +317,7 @@ def _from_correspondences(path: str, keypoint: np.ndarray, rows: np.ndarray, rec
                    f"within {opts.max_error_px:g} px")
         return out
     out.path = path
-    _accept(out, res, feats, keypoint, landmarks, rows, support)
+    accept(out, res, feats, keypoint, landmarks, rows, support)
     if not tighten:
         return out
     _tighten(out, landmarks, lm_desc, feats, camera, opts.radii_px[1:], opts, seed)
@@ -355,99 +349,6 @@ def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeature
                                  camera, strict, seed, repeats=True, tighten=False)
 
 
-def _images_evidence(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                     opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None,
-                     max_error_px: float = VERIFIED_MAX_ERROR_PX) -> tuple[VerifiedMatches, float]:
-    """SIFT + PnP's per-image matches around `out`'s answer (`pose_checked_matches`: the mapping
-    images that observe the landmarks it explains, each image's matches verified by its pose within
-    `max_error_px` at the mapping images' size, so only the keypoints within that of a landmark are
-    compared), and that threshold in px of the query's feature image."""
-    assert out.R is not None and out.t is not None
-    uv, _ = project_points(camera, out.match_xyz, out.R, out.t)
-    seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
-    max_error = max_error_px * min(camera.width, camera.height) / landmarks.image_short_side
-    found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, max_error, image_descriptors,
-                                 opts.threads, opts.device)
-    return found, max_error
-
-
-def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
-    """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
-    the per-image matches of `_images_evidence` replace the answer's matches, and the pose is refined
-    on those within VERIFIED_MAX_ERROR_PX again under each new pose (the Cauchy loss of COLMAP's
-    refinement, the last step of SIFT + PnP's LO-RANSAC), each keypoint counted once per image it
-    matched in, as SIFT + PnP counts it: each distinct (keypoint, landmark) pair once, weighted by that
-    count (`counted_refinement`, the same objective at a tenth of the cost). That count is what makes
-    the baseline's pose the more precise one on mini: its correspondences counted once each gave a
-    worse median (docs/results.md). Its pose check is SIFT + PnP's VERIFIED_MAX_ERROR_PX: twice that
-    compared ~2x the keypoints for the same answers to a few per cent of the median (docs/results.md).
-    Replaces `out`'s pose when at least min_inliers distinct keypoints support the new one."""
-    found, max_error = _images_evidence(out, landmarks, feats, camera, opts, image_descriptors)
-    rows, counts = distinct_pairs(found.keypoint, found.landmark)  # a pair once, weighted by its repetitions
-    res = refine_on_inliers(found.uv[rows], found.xyz[rows], camera, out.R, out.t, max_error,
-                            counts=counts) if len(found) >= opts.min_inliers else None
-    support = 0 if res is None or not res.success else int(len(np.unique(found.keypoint[rows][res.inlier_mask])))
-    out.passes.append({"kind": "images", "radius_px": None, "candidates": int(found.images),
-                       "matches": int(len(found)), "distinct_matches": int(len(rows)),
-                       "verified_pairs": int(found.verified_pairs), "inliers": support})
-    if support >= opts.min_inliers:
-        _accept(out, res, feats, found.keypoint[rows], landmarks, found.landmark[rows], support)
-        out.matches = len(found)
-
-
-def confirmations(keypoint: np.ndarray, landmark: np.ndarray, found_keypoint: np.ndarray,
-                  found_landmark: np.ndarray) -> np.ndarray:
-    """For each match (keypoint[i], landmark[i]): how many of the found correspondences (one per
-    mapping image that gave it) are that same (keypoint, landmark) pair; 0 where none is."""
-    keypoint, landmark = np.asarray(keypoint, np.int64), np.asarray(landmark, np.int64)
-    if len(keypoint) == 0 or len(found_keypoint) == 0:
-        return np.zeros(len(keypoint), np.int64)
-    base = int(max(np.max(landmark), np.max(found_landmark))) + 1
-    keys, counts = np.unique(np.asarray(found_keypoint, np.int64) * base + np.asarray(found_landmark, np.int64),
-                             return_counts=True)
-    mine = keypoint * base + landmark
-    at = np.minimum(np.searchsorted(keys, mine), len(keys) - 1)
-    return np.where(keys[at] == mine, counts[at], 0)
-
-
-def keypoint_sites(uv: np.ndarray) -> np.ndarray:
-    """Each keypoint's site: the first keypoint at exactly its position (SIFT gives a location one
-    keypoint per dominant orientation, each with its own descriptor, all the same measurement)."""
-    if len(uv) == 0:
-        return np.zeros(0, np.int64)
-    _, first, inverse = np.unique(np.asarray(uv), axis=0, return_index=True, return_inverse=True)
-    return first[inverse.reshape(-1)].astype(np.int64)
-
-
-def confirmed_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                   opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
-    """The answer's last pass (relocalize.features_final=confirmed, the default): each of the
-    answer's own matches weighted by the number of mapping images in which SIFT + PnP's per-image
-    matching (`_images_evidence`: nearest observation by descriptor, ratio and mutual tests against
-    every visible observation of the image, the answer's pose within CONFIRM_MAX_ERROR_PX) finds
-    that same (keypoint site, landmark) pair; a match no image confirms is dropped. The pose is
-    refined on the confirmed matches within CONFIRM_MAX_ERROR_PX (`refine_on_inliers` with those
-    counts: the objective SIFT + PnP's refinement would have over the repetitions, whose Cauchy loss
-    of 1 px scale leaves the far ones little weight). The baseline's weighting on
-    the guided matches: on mini, bird and office at least SIFT + PnP's precision, where its own
-    matches instead of the guided ones (`images_pass`) lose a bird query at (2cm,2°) (docs/results.md).
-    Replaces `out`'s pose when at least min_inliers confirmed keypoints support the new one."""
-    found, max_error = _images_evidence(out, landmarks, feats, camera, opts, image_descriptors, CONFIRM_MAX_ERROR_PX)
-    site = keypoint_sites(feats.uv)  # SIFT's orientations of one location are one measurement
-    weight = confirmations(site[out.match_keypoint], out.match_landmark, site[found.keypoint], found.landmark)
-    kept = np.flatnonzero(weight > 0)
-    res = refine_on_inliers(out.match_uv[kept], out.match_xyz[kept], camera, out.R, out.t, max_error,
-                            counts=weight[kept]) if len(kept) >= opts.min_inliers else None
-    support = 0 if res is None or not res.success else int(len(np.unique(out.match_keypoint[kept][res.inlier_mask])))
-    out.passes.append({"kind": "confirmed", "radius_px": None, "candidates": int(found.images),
-                       "matches": int(len(out.match_keypoint)), "confirmed": int(len(kept)),
-                       "confirmations": int(weight.sum()), "verified_pairs": int(found.verified_pairs),
-                       "inliers": support})
-    if support >= opts.min_inliers:
-        _accept(out, res, feats, out.match_keypoint[kept], landmarks, out.match_landmark[kept], support)
-
-
 def best_hypothesis(hypotheses: list[FeatureResult]) -> FeatureResult:
     """The hypothesis with the most PnP inliers after tightening (the first, the cheapest, on ties),
     carrying every hypothesis's passes and support in its record; or the last failure."""
@@ -468,7 +369,7 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                        R0: np.ndarray | None, t0: np.ndarray | None, opts: FeatureMatchOptions, seed: int = 0,
                        verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
                        global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                       weak_prior: bool = False, image_descriptors: list[np.ndarray] | None = None,
+                       weak_prior: bool = False,
                        agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
     from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior,
@@ -476,10 +377,8 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
     may have settled on a wrong pose), matching against every landmark (unless not `use_global`;
     `global_pairs` gives those matches when they are computed already); when the guided passes find
     none, SIFT + PnP's evidence too (`verified`, called only then: it is the expensive one). The
-    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors. With
-    opts.final "images" and landmarks with observations (`image_descriptors`: their unit descriptors
-    per image, computed once per map), a winner from the guided or global path gets `images_pass`
-    (SIFT + PnP's own path, "verified", is that evidence already). With `agreement` (how many of the
+    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors. The
+    answer's last pass (opts.final) is `last_pass.last_pass`'s, after this. With `agreement` (how many of the
     matches to every landmark a result explains, and how many their own pose explains; None when
     they give no pose), a guided winner that did not compete with them is checked: one that explains
     fewer than AGREEMENT of what their own pose does competes with the global hypothesis, and the
@@ -504,7 +403,4 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                 hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
                                               global_pairs() if global_pairs is not None else None))
             best = best_hypothesis(hypotheses)
-    if opts.final != "guided" and best.success and best.path != "verified" and landmarks.observations is not None:
-        (images_pass if opts.final == "images" else confirmed_pass)(best, landmarks, feats, camera, opts,
-                                                                      image_descriptors)
     return best
