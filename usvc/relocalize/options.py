@@ -56,7 +56,7 @@ class RelocalizeOptions:
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
-    features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 30-60 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
+    features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 20-64 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
