@@ -126,7 +126,7 @@ def _localize(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from usvc.relocalize.query_input import check_device
-    from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
+    from usvc.relocalize.relocalizer import Relocalizer
 
     try:
         check_workers(args.workers)
