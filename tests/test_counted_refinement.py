@@ -14,6 +14,7 @@ from test_fallback import N_POINTS, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
 
 from usvc.core.scene import Camera
+from usvc.landmarks.landmark_table import unit_descriptors
 from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_weighted
 from usvc.relocalize.pnp import project_points, refine_on_inliers
 from usvc.relocalize.query_features import QueryFeatures
@@ -125,8 +126,10 @@ def test_a_keypoint_out_of_the_poses_reach_does_not_take_a_landmark_from_the_one
     spot = np.array([CAM.width, CAM.height], float) * 0.5
     while np.min(np.linalg.norm(uv - spot, axis=1)) < 10.0:  # a place no landmark projects near
         spot = spot + np.array([1.7, 0.9])
+    code = observation_descriptors(obs)[0].codes[j - a][None]  # the observation's own bytes
     copied = QueryFeatures(np.concatenate([feats.uv, spot[None]]),
-                           np.concatenate([feats.descriptor, observation_descriptors(obs)[0][j - a][None]]))
+                           np.concatenate([feats.descriptor, unit_descriptors(code)]),
+                           np.concatenate([feats.codes, code]))
     found = pose_checked_matches(landmarks, copied, CAM, R_TRUE, T_TRUE, every, 2.0)
     assert np.array_equal(found.keypoint, base.keypoint) and np.array_equal(found.landmark, base.landmark)
     assert image == obs.image_slices()[0][0]

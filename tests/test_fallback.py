@@ -28,7 +28,9 @@ from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import feature_answer as feature_answer_module
 from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import query_evidence as query_evidence_module
+from usvc.relocalize import byte_products
 from usvc.relocalize import relocalizer as relocalizer_module
+from usvc.relocalize.byte_products import ByteRows, dots, dtype_of, int8_products
 from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
@@ -137,33 +139,62 @@ def test_mutual_ratio_matching_keeps_only_clear_mutual_nearest_neighbours():
     query = unit_descriptors(np.concatenate([image[:30] + 0.02 * rng.random((30, 128)),
                                              image[30:31] + 0.05 * rng.random((1, 128)),
                                              image[30:31] + 0.01 * rng.random((1, 128))]))
-    q, m = mutual_ratio_matches(query.astype(np.float32), image.astype(np.float32))
+    q, m = mutual_ratio_matches(ByteRows.of(encode_descriptors(query)), ByteRows.of(encode_descriptors(image)))
     assert np.array_equal(q, [*range(30), 31]) and np.array_equal(m, [*range(30), 30])
-    confusable = unit_descriptors(np.stack([image[0], image[0] + 1e-3]))  # a twin: fails the ratio test
-    assert len(mutual_ratio_matches(query[:1].astype(np.float32), confusable.astype(np.float32))[0]) == 0
+    twins = ByteRows.of(encode_descriptors(np.stack([image[0], image[0]])))  # a twin: fails the ratio test
+    assert len(mutual_ratio_matches(ByteRows.of(encode_descriptors(query[:1])), twins)[0]) == 0
 
 
+PRODUCTS = [pytest.param(False, id="float32"), pytest.param(True, id="int8", marks=pytest.mark.skipif(
+    not int8_products(), reason="no int8 products on this CPU (VNNI/AMX) or in this torch"))]
+
+
+@pytest.mark.parametrize("int8", PRODUCTS)
 @pytest.mark.parametrize("device", [None, "cpu"])  # numpy's products; torch's (a GPU's path) forced onto the CPU
-def test_mutual_ratio_matching_is_the_argmax_definition_with_ties(device):
-    """The mutual test by column maxima gives np.argmax's answer (the first row of a column's largest
-    entry), also where several rows reach it: duplicated keypoints tie exactly."""
+def test_mutual_ratio_matching_is_colmaps_rule_on_the_bytes_with_ties(device, int8):
+    """COLMAP's matcher on its uint8 descriptors: nearest by the angle of dot / 512² (exact
+    integers), ratio and distance tests, and the mutual test by column maxima gives np.argmax's
+    answer (the first row of a column's largest entry), also where several rows reach it:
+    duplicated keypoints tie exactly. Integer products on int8 units and float32 products give the
+    same matches."""
     rng = np.random.default_rng(1)
     for trial in range(20):
-        image = unit_descriptors(rng.random((40 + trial, 128)) ** 4).astype(np.float32)
-        query = unit_descriptors(np.concatenate([image[:25] + 0.03 * rng.random((25, 128)),
-                                                 rng.random((15, 128)) ** 4])).astype(np.float32)
+        unit = unit_descriptors(rng.random((40 + trial, 128)) ** 4)
+        image = encode_descriptors(unit)
+        query = encode_descriptors(unit_descriptors(np.concatenate([unit[:25] + 0.03 * rng.random((25, 128)),
+                                                                    rng.random((15, 128)) ** 4])))
         query = np.concatenate([query, query[rng.integers(0, 25, 5)]])  # exact duplicates: ties in a column
         query = query[rng.permutation(len(query))]
-        q, m = mutual_ratio_matches(query, image, device=device)
-        sim = query @ image.T
-        first = np.argmax(sim, axis=1)
-        s1 = sim[np.arange(len(query)), first]
-        second = np.sort(sim, axis=1)[:, -2]
-        d1, d2 = np.arccos(np.clip(s1, -1, 1)), np.arccos(np.clip(second, -1, 1))
-        want = np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2) & (np.argmax(sim, axis=0)[first]
+        q, m = mutual_ratio_matches(ByteRows.of(query, int8), ByteRows.of(image, int8), device=device)
+        dot = query.astype(np.int64) @ image.astype(np.int64).T
+        first = np.argmax(dot, axis=1)
+        s1 = dot[np.arange(len(query)), first]
+        second = np.sort(dot, axis=1)[:, -2]
+        d1, d2 = (np.arccos(np.minimum(v / 512.0 ** 2, 1.0)) for v in (s1, second))
+        want = np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2) & (np.argmax(dot, axis=0)[first]
                                                                                == np.arange(len(query))))
+        assert len(want) > 10, trial
         assert np.array_equal(q, want) and np.array_equal(m, first[want]), trial
-        assert len(q) >= 10, trial
+
+
+def test_byte_products_are_exact_on_either_unit():
+    """int8 products (offsets added back) and float32 products of the bytes are the integers an
+    int64 product gives, for the largest bytes too; rows taken keep them."""
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, (37, 128), dtype=np.uint8)
+    b = np.concatenate([rng.integers(0, 256, (29, 128), dtype=np.uint8), np.full((1, 128), 255, np.uint8)])
+    want = a.astype(np.int64) @ b.astype(np.int64).T
+    for int8 in ([False, True] if int8_products() else [False]):
+        got = dots(ByteRows.of(a, int8), ByteRows.of(b, int8))
+        assert np.array_equal(got.astype(np.int64), want), int8
+        rows = np.array([5, 0, 36])
+        assert np.array_equal(dots(ByteRows.of(a, int8).take(rows), ByteRows.of(b, int8)).astype(np.int64),
+                              want[rows]), int8
+        block = np.empty(40 * 40, dtype_of(ByteRows.of(a, int8)))  # a reused block holds them as well
+        assert np.array_equal(dots(ByteRows.of(a, int8), ByteRows.of(b, int8), block).astype(np.int64), want)
+    if int8_products():  # both sides held for one kind of product
+        with pytest.raises(ValueError, match="same products"):
+            dots(ByteRows.of(a, False), ByteRows.of(b, True))
 
 
 def test_verified_matches_lift_the_query_keypoints_to_their_points():
@@ -176,6 +207,23 @@ def test_verified_matches_lift_the_query_keypoints_to_their_points():
     assert np.all(found.keypoint < N_POINTS)  # no distractor was lifted
     _, other = scene(1)  # another place's keypoints: nothing survives matching and verification
     assert len(verified_matches(landmarks, other, CAM, seed=0)) < MIN_PAIR_INLIERS
+
+
+@pytest.mark.skipif(not int8_products(), reason="no int8 products on this CPU (VNNI/AMX) or in this torch")
+def test_per_image_matches_are_the_same_with_int8_and_float32_products(monkeypatch):
+    """The CPU's int8 products and float32 products of the bytes (every other CPU's, and a GPU's
+    arithmetic) give the same matches, verified or pose-checked."""
+    landmarks, feats = scene()
+    every = np.arange(len(landmarks))
+    runs = [lambda: verified_matches(landmarks, feats, CAM, seed=3, threads=2),
+            lambda: pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, every, 2.0, threads=2)]
+    on_int8 = [run() for run in runs]
+    monkeypatch.setattr(byte_products, "int8_products", lambda: False)
+    for run, want in zip(runs, on_int8):
+        got = run()
+        assert len(got) > N_POINTS
+        for name in ("uv", "xyz", "landmark", "keypoint"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), name
 
 
 def test_per_image_matches_are_the_same_bits_on_any_number_of_threads():

@@ -13,6 +13,7 @@ import torch
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.camera_checks import stretch_verdict
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_job import Job, QueryFeatureSet
@@ -32,7 +33,7 @@ class FeatureAnswers:
     seed: int
     prior: bool
     _landmark_desc: np.ndarray
-    _observation_desc: np.ndarray | None
+    _observation_desc: list[ByteRows] | None
 
     def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
                   camera: Camera, dense, check_focal: bool,

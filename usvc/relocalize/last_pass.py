@@ -11,6 +11,7 @@ import numpy as np
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.counted_refinement import distinct_pairs
 from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX, FeatureMatchOptions, FeatureResult, accept
 from usvc.relocalize.pnp import project_points, refine_on_inliers
@@ -25,7 +26,7 @@ CONFIRM_MAX_ERROR_PX = 8.0
 
 
 def _images_evidence(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                     opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None,
+                     opts: FeatureMatchOptions, image_descriptors: list[ByteRows] | None,
                      max_error_px: float = VERIFIED_MAX_ERROR_PX) -> tuple[VerifiedMatches, float]:
     """SIFT + PnP's per-image matches around `out`'s answer (`pose_checked_matches`: the mapping
     images that observe the landmarks it explains, each image's matches verified by its pose within
@@ -41,7 +42,7 @@ def _images_evidence(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatu
 
 
 def images_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
+                opts: FeatureMatchOptions, image_descriptors: list[ByteRows] | None = None) -> None:
     """The answer's last pass with SIFT + PnP's evidence around it (relocalize.features_final=images):
     the per-image matches of `_images_evidence` replace the answer's matches, and the pose is refined
     on those within VERIFIED_MAX_ERROR_PX again under each new pose (the Cauchy loss of COLMAP's
@@ -90,7 +91,7 @@ def keypoint_sites(uv: np.ndarray) -> np.ndarray:
 
 
 def confirmed_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-                   opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> None:
+                   opts: FeatureMatchOptions, image_descriptors: list[ByteRows] | None = None) -> None:
     """The answer's last pass (relocalize.features_final=confirmed, the default): each of the
     answer's own matches weighted by the number of mapping images in which SIFT + PnP's per-image
     matching (`_images_evidence`: nearest observation by descriptor, ratio and mutual tests against
@@ -118,10 +119,11 @@ def confirmed_pass(out: FeatureResult, landmarks: Landmarks, feats: QueryFeature
 
 
 def last_pass(answer: FeatureResult, landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
-              opts: FeatureMatchOptions, image_descriptors: list[np.ndarray] | None = None) -> FeatureResult:
+              opts: FeatureMatchOptions, image_descriptors: list[ByteRows] | None = None) -> FeatureResult:
     """`answer` after opts.final's last pass (`confirmed_pass` or `images_pass`; none for `guided`),
     where it has a pose from the guided or global path and the landmarks carry their observations
-    (`image_descriptors`: their unit descriptors per image, computed once per map)."""
+    (`image_descriptors`: their descriptors per image, `verified_matching.observation_descriptors`, held
+    once per map)."""
     if opts.final != "guided" and answer.success and answer.path != "verified" and landmarks.observations is not None:
         (images_pass if opts.final == "images" else confirmed_pass)(answer, landmarks, feats, camera, opts,
                                                                       image_descriptors)

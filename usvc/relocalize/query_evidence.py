@@ -13,6 +13,7 @@ import numpy as np
 from usvc.core.absolute_pose import FocalPose, estimate_focal_pose
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
 from usvc.relocalize.pnp import reprojection_inliers
 from usvc.relocalize.query_features import QueryFeatures
@@ -25,7 +26,7 @@ class QueryEvidence:
     leaves the global matches out of `unguided`; `global_pairs` gives those matches when they are
     being found already (`usvc.relocalize.feature_job`); SIFT + PnP's pairs are verified on `opts.threads`."""
 
-    def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[np.ndarray] | None,
+    def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[ByteRows] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
                  use_global: bool = True,
                  global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:

@@ -3,8 +3,8 @@ keypoints matched to each mapping image's keypoints that carry SfM points, the m
 pair verified by two-view geometry, and the verified matches lifted to the points through the
 tracks (landmarks.h5's observations).
 
-Matching follows COLMAP's SIFT matcher (nearest neighbour by the angle between unit descriptors,
-at most MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
+Matching follows COLMAP's SIFT matcher (nearest neighbour by the angle between descriptors, from the
+exact integer dot of their uint8 encoding as COLMAP computes it (`byte_products`), at most MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
 is COLMAP's own (`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography
 matrix, whichever explains the pair, at least MIN_PAIR_INLIERS inliers; at most MAX_PAIR_TRIALS
 RANSAC trials), as the sfm stage and `benchmarks/baseline_sift.py` match and verify. A keypoint matched in several mapping images gives
@@ -15,7 +15,6 @@ intrinsics beyond verification, so they also judge a given focal length (P4Pf).
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -27,7 +26,8 @@ import pycolmap
 from scipy.spatial import cKDTree
 
 from usvc.core.scene import Camera
-from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, unit_descriptors
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
+from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots, dtype_of
 from usvc.relocalize.device_matching import mutual_reductions
 from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_features import QueryFeatures
@@ -70,41 +70,39 @@ class VerifiedMatches:
                 "correspondences": len(self)}
 
 
-def mutual_ratio_matches(query: np.ndarray, image: np.ndarray, scratch: np.ndarray | None = None,
+def mutual_ratio_matches(query: ByteRows, image: ByteRows, scratch: np.ndarray | None = None,
                          device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(query rows, image rows) matched as COLMAP's CPU matcher does for two sets of unit
-    descriptors: nearest by angle, within MAX_DISTANCE, ratio test, mutual nearest. `scratch`: a
-    float32 array of at least K x n entries to hold the products (a fresh one per call costs its
-    page faults: ~a third of the products' own time on mini's images). With a torch `device` the
-    products and their reductions run there (`device_matching.mutual_reductions`), the same rules."""
+    """(query rows, image rows) matched as COLMAP's CPU matcher matches two sets of descriptors in
+    its uint8 encoding: nearest by angle (the exact integer dot of the bytes, `byte_products`),
+    within MAX_DISTANCE, ratio test, mutual nearest. `scratch`: a block of at least K x n entries of
+    the products' dtype to hold them (a fresh one per call costs its page faults: ~a third of the
+    products' own time on mini's images). With a torch `device` the products (of the bytes as
+    float32: exact) and their reductions run there (`device_matching.mutual_reductions`), the same
+    rules and the same integers."""
     if len(query) == 0 or len(image) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if device is not None:
-        first, s1, s2, reach = mutual_reductions(query, image, device)
+        first, s1, s2, reach = mutual_reductions(query.floats(), image.floats(), device)
         q = _ratio_passes(s1, s2)
         q = q[reach[first[q]] == q]  # the first row to reach its column's largest entry: mutual
         return q, first[q]
-    out = None if scratch is None or scratch.size < len(query) * len(image) or scratch.dtype != np.float32 \
-        or query.dtype != np.float32 or image.dtype != np.float32 \
-        else scratch[:len(query) * len(image)].reshape(len(query), len(image))
-    sim = np.matmul(query, image.T, out=out)  # (K, n)
+    sim = dots(query, image, scratch)  # (K, n), exact integers
     rows = np.arange(len(query))
     first = np.argmax(sim, axis=1)
     s1 = sim[rows, first]
     if sim.shape[1] > 1:
-        sim[rows, first] = -np.inf
+        sim[rows, first] = MASKED
         s2 = sim.max(axis=1)
         sim[rows, first] = s1  # restore for the mutual check
     else:
-        s2 = np.full(len(query), -np.inf, np.float32)
+        s2 = np.full(len(query), MASKED, sim.dtype)
     return _mutual(sim, _ratio_passes(s1, s2), first)
 
 
 def _ratio_passes(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
-    """The rows whose nearest column (similarity s1; s2 the second) is within MAX_DISTANCE and
-    passes the ratio test, by angle as COLMAP's matcher measures it."""
-    d1 = np.arccos(np.clip(s1, -1.0, 1.0))
-    d2 = np.where(np.isfinite(s2), np.arccos(np.clip(s2, -1.0, 1.0)), np.inf)
+    """The rows whose nearest column (dot s1; s2 the second, MASKED or -inf where there is none)
+    is within MAX_DISTANCE and passes the ratio test, by angle as COLMAP's matcher measures it."""
+    d1, d2 = angles(s1), angles(s2)
     return np.flatnonzero((d1 <= MAX_DISTANCE) & (d1 < MAX_RATIO * d2))
 
 
@@ -133,9 +131,9 @@ def _pycolmap_camera(K: np.ndarray, width: int, height: int) -> pycolmap.Camera:
                            params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
 
 
-def _per_image(landmarks: Landmarks, image_descriptors: list[np.ndarray] | None
-               ) -> tuple[LandmarkObservations, list[tuple[int, int, int]], list[np.ndarray]]:
-    """The landmarks' observations, their (image, start, end) slices and each image's unit descriptors."""
+def _per_image(landmarks: Landmarks, image_descriptors: list[ByteRows] | None
+               ) -> tuple[LandmarkObservations, list[tuple[int, int, int]], list[ByteRows]]:
+    """The landmarks' observations, their (image, start, end) slices and each image's descriptors."""
     obs = landmarks.observations
     if obs is None:
         raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
@@ -144,12 +142,12 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[np.ndarray] | None
 
 
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
-                     image_descriptors: list[np.ndarray] | None = None, threads: int = 1,
+                     image_descriptors: list[ByteRows] | None = None, threads: int = 1,
                      device: str | None = None) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
     `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
-    verification tells an essential from a fundamental matrix). `image_descriptors` are the unit
-    descriptors of each image's observations (`observation_descriptors`), computed once per map.
+    verification tells an essential from a fundamental matrix). `image_descriptors` are the
+    descriptors of each image's observations (`observation_descriptors`), held once per map.
     Each image is matched and its pair verified as one task, the tasks on `threads` threads (numpy's
     products and COLMAP's RANSAC release Python's lock; each pair has its own seeded RANSAC, so the
     matches are the same bits whatever the count). With a torch `device` (a GPU) the descriptor
@@ -161,7 +159,8 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
-    scratch = _Scratch(max((b - a for _, a, b in slices), default=0) * len(feats))
+    query = ByteRows.of(feats.codes)
+    scratch = ProductBlocks(max((b - a for _, a, b in slices), default=0) * len(feats), dtype_of(query))
 
     def verify(pair: tuple) -> np.ndarray | None:
         """The pair's inlier matches (query row, observation row within the image), or None."""
@@ -177,7 +176,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         """The pair's matches (image, first observation, query rows, image rows) and their verified
         inliers; None: fewer than MIN_PAIR_INLIERS matches."""
         (image_id, a, b), desc = image
-        qi, mi = mutual_ratio_matches(feats.descriptor, desc, None if device else scratch.products(), device)
+        qi, mi = mutual_ratio_matches(query, desc, None if device else scratch.block(), device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         pair = (image_id, a, b, qi, mi)
@@ -197,7 +196,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
 
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
                          seen: np.ndarray, max_error_px: float,
-                         image_descriptors: list[np.ndarray] | None = None, threads: int = 1,
+                         image_descriptors: list[ByteRows] | None = None, threads: int = 1,
                          device: str | None = None) -> VerifiedMatches:
     """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
     keypoints matched as `verified_matches` matches them, but only to the mapping images that
@@ -220,7 +219,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     chosen = [(obs.landmark[a:b], desc) for (_, a, b), desc in zip(slices, descs)
               if int(in_seen[obs.landmark[a:b]].sum()) >= MIN_PAIR_INLIERS]
 
-    scratch = _Scratch(max((len(rows) for rows, _ in chosen), default=0) * len(feats))
+    query = ByteRows.of(feats.codes)
+    scratch = ProductBlocks(max((len(rows) for rows, _ in chosen), default=0) * len(feats), dtype_of(query))
     # (landmark, keypoint) pairs the pose puts within max_error_px of each other, found once: only
     # keypoints within reach of one of an image's landmarks can give a match the pose explains, so
     # the others are left out of that image's products (and so of its mutual test)
@@ -240,8 +240,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         near = np.zeros(len(feats), bool)
         near[reach_kp[mine[reach_lm]]] = True
         near = np.flatnonzero(near)
-        qi, mi = mutual_ratio_matches(feats.descriptor[near], desc if len(kept) == len(rows) else desc[kept],
-                                      None if device else scratch.products(), device)
+        qi, mi = mutual_ratio_matches(query.take(near), desc if len(kept) == len(rows) else desc.take(kept),
+                                      None if device else scratch.block(), device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         qi = near[qi]
@@ -257,20 +257,6 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
                            sum(f is not None for f in found), len(pairs), time.perf_counter() - t0)
 
 
-class _Scratch:
-    """Each thread's float32 block for one image's descriptor products (`size` entries, made once per
-    thread and reused from image to image: a fresh block per image costs its page faults)."""
-
-    def __init__(self, size: int) -> None:
-        self.size, self._local = int(size), threading.local()
-
-    def products(self) -> np.ndarray:
-        block = getattr(self._local, "block", None)
-        if block is None:
-            block = self._local.block = np.empty(self.size, np.float32)
-        return block
-
-
 def _in_order(fn: Callable[[Item], Out], items: list[Item], threads: int) -> list[Out]:
     """`fn(item)` for every item, in order, on up to `threads` threads (in place with one)."""
     if threads > 1 and len(items) > 1:
@@ -279,6 +265,7 @@ def _in_order(fn: Callable[[Item], Out], items: list[Item], threads: int) -> lis
     return [fn(item) for item in items]
 
 
-def observation_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
-    """Unit float32 descriptors of each image's observations, in `image_slices` order."""
-    return [unit_descriptors(obs.descriptor[a:b]) for _, a, b in obs.image_slices()]
+def observation_descriptors(obs: LandmarkObservations, int8: bool | None = None) -> list[ByteRows]:
+    """Each image's observations' descriptors (COLMAP's uint8 encoding, as the landmarks carry
+    them), held for the products (`ByteRows.of`), in `image_slices` order."""
+    return [ByteRows.of(obs.descriptor[a:b], int8) for _, a, b in obs.image_slices()]
