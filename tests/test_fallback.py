@@ -30,7 +30,7 @@ from usvc.relocalize import feature_job as feature_job_module
 from usvc.relocalize import query_evidence as query_evidence_module
 from usvc.relocalize import byte_products
 from usvc.relocalize import relocalizer as relocalizer_module
-from usvc.relocalize.byte_products import ByteRows, dots, dtype_of, int8_products
+from usvc.relocalize.byte_products import ByteRows, dots, int8_products
 from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
@@ -151,12 +151,13 @@ PRODUCTS = [pytest.param(False, id="float32"), pytest.param(True, id="int8", mar
 
 @pytest.mark.parametrize("int8", PRODUCTS)
 @pytest.mark.parametrize("device", [None, "cpu"])  # numpy's products; torch's (a GPU's path) forced onto the CPU
-def test_mutual_ratio_matching_is_colmaps_rule_on_the_bytes_with_ties(device, int8):
+def test_mutual_ratio_matching_is_colmaps_rule_on_the_bytes_with_ties(device, int8, monkeypatch):
     """COLMAP's matcher on its uint8 descriptors: nearest by the angle of dot / 512² (exact
     integers), ratio and distance tests, and the mutual test by column maxima gives np.argmax's
     answer (the first row of a column's largest entry), also where several rows reach it:
     duplicated keypoints tie exactly. Integer products on int8 units and float32 products give the
     same matches."""
+    monkeypatch.setattr(byte_products, "INT8_MIN_ENTRIES", 0)  # these small products on int8 units too
     rng = np.random.default_rng(1)
     for trial in range(20):
         unit = unit_descriptors(rng.random((40 + trial, 128)) ** 4)
@@ -177,24 +178,24 @@ def test_mutual_ratio_matching_is_colmaps_rule_on_the_bytes_with_ties(device, in
         assert np.array_equal(q, want) and np.array_equal(m, first[want]), trial
 
 
-def test_byte_products_are_exact_on_either_unit():
+@pytest.mark.parametrize("smallest", [0, byte_products.INT8_MIN_ENTRIES])  # every product on int8 units; the default
+def test_byte_products_are_exact_on_either_unit(monkeypatch, smallest):
     """int8 products (offsets added back) and float32 products of the bytes are the integers an
-    int64 product gives, for the largest bytes too; rows taken keep them."""
+    int64 product gives, for the largest bytes too; rows taken keep them, and so does a reused block."""
+    monkeypatch.setattr(byte_products, "INT8_MIN_ENTRIES", smallest)
     rng = np.random.default_rng(2)
     a = rng.integers(0, 256, (37, 128), dtype=np.uint8)
     b = np.concatenate([rng.integers(0, 256, (29, 128), dtype=np.uint8), np.full((1, 128), 255, np.uint8)])
     want = a.astype(np.int64) @ b.astype(np.int64).T
+    blocks = byte_products.ProductBlocks(16)  # smaller than the product: grown on first use
     for int8 in ([False, True] if int8_products() else [False]):
-        got = dots(ByteRows.of(a, int8), ByteRows.of(b, int8))
-        assert np.array_equal(got.astype(np.int64), want), int8
-        rows = np.array([5, 0, 36])
-        assert np.array_equal(dots(ByteRows.of(a, int8).take(rows), ByteRows.of(b, int8)).astype(np.int64),
-                              want[rows]), int8
-        block = np.empty(40 * 40, dtype_of(ByteRows.of(a, int8)))  # a reused block holds them as well
-        assert np.array_equal(dots(ByteRows.of(a, int8), ByteRows.of(b, int8), block).astype(np.int64), want)
-    if int8_products():  # both sides held for one kind of product
-        with pytest.raises(ValueError, match="same products"):
-            dots(ByteRows.of(a, False), ByteRows.of(b, True))
+        rows_a, rows_b = ByteRows.of(a, int8), ByteRows.of(b, int8)
+        for out in (None, blocks):
+            assert np.array_equal(dots(rows_a, rows_b, out).astype(np.int64), want), (int8, out)
+        pick = np.array([5, 0, 36])
+        assert np.array_equal(dots(rows_a.take(pick), rows_b, blocks).astype(np.int64), want[pick]), int8
+    if int8_products() and smallest == 0:
+        assert dots(ByteRows.of(a, True), ByteRows.of(b, True)).dtype == np.int32  # the int8 units ran
 
 
 def test_verified_matches_lift_the_query_keypoints_to_their_points():
@@ -213,6 +214,7 @@ def test_verified_matches_lift_the_query_keypoints_to_their_points():
 def test_per_image_matches_are_the_same_with_int8_and_float32_products(monkeypatch):
     """The CPU's int8 products and float32 products of the bytes (every other CPU's, and a GPU's
     arithmetic) give the same matches, verified or pose-checked."""
+    monkeypatch.setattr(byte_products, "INT8_MIN_ENTRIES", 0)  # the scene's small products on int8 units too
     landmarks, feats = scene()
     every = np.arange(len(landmarks))
     runs = [lambda: verified_matches(landmarks, feats, CAM, seed=3, threads=2),

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
-from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots, dtype_of
+from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots
 from usvc.relocalize.device_matching import mutual_reductions
 from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_features import QueryFeatures
@@ -70,19 +70,19 @@ class VerifiedMatches:
                 "correspondences": len(self)}
 
 
-def mutual_ratio_matches(query: ByteRows, image: ByteRows, scratch: np.ndarray | None = None,
+def mutual_ratio_matches(query: ByteRows, image: ByteRows, scratch: ProductBlocks | None = None,
                          device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(query rows, image rows) matched as COLMAP's CPU matcher matches two sets of descriptors in
     its uint8 encoding: nearest by angle (the exact integer dot of the bytes, `byte_products`),
-    within MAX_DISTANCE, ratio test, mutual nearest. `scratch`: a block of at least K x n entries of
-    the products' dtype to hold them (a fresh one per call costs its page faults: ~a third of the
-    products' own time on mini's images). With a torch `device` the products (of the bytes as
+    within MAX_DISTANCE, ratio test, mutual nearest. `scratch`: the thread's blocks to hold the
+    products (`byte_products.ProductBlocks`: a fresh array per call costs its page faults, ~a third
+    of the products' own time on mini's images). With a torch `device` the products (of the bytes as
     float32: exact) and their reductions run there (`device_matching.mutual_reductions`), the same
     rules and the same integers."""
     if len(query) == 0 or len(image) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if device is not None:
-        first, s1, s2, reach = mutual_reductions(query.floats(), image.floats(), device)
+        first, s1, s2, reach = mutual_reductions(query.values, image.values, device)
         q = _ratio_passes(s1, s2)
         q = q[reach[first[q]] == q]  # the first row to reach its column's largest entry: mutual
         return q, first[q]
@@ -160,7 +160,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
     query = ByteRows.of(feats.codes)
-    scratch = ProductBlocks(max((b - a for _, a, b in slices), default=0) * len(feats), dtype_of(query))
+    scratch = ProductBlocks(max((b - a for _, a, b in slices), default=0) * len(feats))
 
     def verify(pair: tuple) -> np.ndarray | None:
         """The pair's inlier matches (query row, observation row within the image), or None."""
@@ -176,7 +176,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         """The pair's matches (image, first observation, query rows, image rows) and their verified
         inliers; None: fewer than MIN_PAIR_INLIERS matches."""
         (image_id, a, b), desc = image
-        qi, mi = mutual_ratio_matches(query, desc, None if device else scratch.block(), device)
+        qi, mi = mutual_ratio_matches(query, desc, None if device else scratch, device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         pair = (image_id, a, b, qi, mi)
@@ -220,7 +220,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
               if int(in_seen[obs.landmark[a:b]].sum()) >= MIN_PAIR_INLIERS]
 
     query = ByteRows.of(feats.codes)
-    scratch = ProductBlocks(max((len(rows) for rows, _ in chosen), default=0) * len(feats), dtype_of(query))
+    scratch = ProductBlocks(max((len(rows) for rows, _ in chosen), default=0) * len(feats))
     # (landmark, keypoint) pairs the pose puts within max_error_px of each other, found once: only
     # keypoints within reach of one of an image's landmarks can give a match the pose explains, so
     # the others are left out of that image's products (and so of its mutual test)
@@ -241,7 +241,7 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         near[reach_kp[mine[reach_lm]]] = True
         near = np.flatnonzero(near)
         qi, mi = mutual_ratio_matches(query.take(near), desc if len(kept) == len(rows) else desc.take(kept),
-                                      None if device else scratch.block(), device)
+                                      None if device else scratch, device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
         qi = near[qi]
