@@ -91,6 +91,13 @@ def network_threads(threads: int) -> AbstractContextManager[None]:
     return _shared("torch", apply)
 
 
+def products_on_own_threads() -> AbstractContextManager[None]:
+    """torch's pool at one thread while the per-image products run on the query's own threads
+    (`verified_matching`: each of those threads a core of its own, as with the side split); shared
+    with overlapping queries as `network_threads` is."""
+    return network_threads(1)
+
+
 @contextmanager
 def query_split(threads: int) -> Iterator[None]:
     """A query on `threads` threads whose side work runs beside it: OpenCV and BLAS at the side's

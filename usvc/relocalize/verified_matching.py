@@ -30,6 +30,7 @@ from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
 from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots
 from usvc.relocalize.device_matching import mutual_reductions
 from usvc.relocalize.pnp import in_image, project_points
+from usvc.relocalize.query_cores import products_on_own_threads
 from usvc.relocalize.query_features import QueryFeatures
 
 log = logging.getLogger(__name__)
@@ -182,7 +183,8 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
         pair = (image_id, a, b, qi, mi)
         return pair, verify(pair)
 
-    found = [f for f in _in_order(match_and_verify, list(zip(slices, descs)), threads) if f is not None]
+    with products_on_own_threads():  # the int8 products' torch calls on this query's threads alone
+        found = [f for f in _in_order(match_and_verify, list(zip(slices, descs)), threads) if f is not None]
     pairs, inliers = [f[0] for f in found], [f[1] for f in found]
     keypoint = [inl[:, 0] for inl in inliers if inl is not None]
     landmark = [obs.landmark[pair[1] + inl[:, 1]].astype(np.int64) for pair, inl in zip(pairs, inliers)
@@ -249,7 +251,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         ok = np.linalg.norm(uv_lm[lm] - feats.uv[qi], axis=1) <= max_error_px
         return qi[ok], lm[ok]
 
-    found = _in_order(match, chosen, threads)
+    with products_on_own_threads():
+        found = _in_order(match, chosen, threads)
     pairs = [f for f in found if f is not None and len(f[0]) >= MIN_PAIR_INLIERS]
     kp = np.concatenate([q for q, _ in pairs]) if pairs else np.zeros(0, np.int64)
     lm = np.concatenate([m for _, m in pairs]) if pairs else np.zeros(0, np.int64)
