@@ -74,8 +74,9 @@ def mutual_reductions(query: np.ndarray, image: np.ndarray,
                       device: str | torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What COLMAP's matcher rules need of the query x image similarities (`verified_matching.
     mutual_ratio_matches`: `query` and `image` are the uint8 codes as float32, whose products are
-    exact integers where TF32 is off, torch's default), computed on `device`: per query row the column of its largest entry
-    (the first on ties), the largest and the second largest (-inf for a single column); per image
+    exact integers where TF32 is off, torch's default), computed on `device`: per query row the
+    column of its largest entry (the first on ties), the largest and the second largest (-inf for a
+    single column); per image
     column the first row that reaches its largest entry. numpy's argmax rule throughout: torch's
     argmax returns the first maximal index too."""
     device = torch.device(device)

@@ -4,7 +4,8 @@ pair verified by two-view geometry, and the verified matches lifted to the point
 tracks (landmarks.h5's observations).
 
 Matching follows COLMAP's SIFT matcher (nearest neighbour by the angle between descriptors, from the
-exact integer dot of their uint8 encoding as COLMAP computes it (`byte_products`), at most MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
+exact integer dot of their uint8 encoding as COLMAP computes it (`byte_products`), at most
+MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
 is COLMAP's own (`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography
 matrix, whichever explains the pair, at least MIN_PAIR_INLIERS inliers; at most MAX_PAIR_TRIALS
 RANSAC trials), as the sfm stage and `benchmarks/baseline_sift.py` match and verify. A keypoint matched in several mapping images gives
