@@ -18,7 +18,7 @@ from usvc.landmarks.landmark_table import unit_descriptors
 from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_weighted
 from usvc.relocalize.pnp import project_points, refine_on_inliers
 from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import observation_descriptors, pose_checked_matches, verified_matches
+from usvc.relocalize.verified_matching import pose_checked_matches, verified_matches
 
 R_START = Rotation.from_rotvec([0.0, 0.004, 0.002]).as_matrix() @ R_TRUE  # ~0.26 deg off
 T_START = T_TRUE + np.array([0.003, -0.002, 0.004])
@@ -126,7 +126,7 @@ def test_a_keypoint_out_of_the_poses_reach_does_not_take_a_landmark_from_the_one
     spot = np.array([CAM.width, CAM.height], float) * 0.5
     while np.min(np.linalg.norm(uv - spot, axis=1)) < 10.0:  # a place no landmark projects near
         spot = spot + np.array([1.7, 0.9])
-    code = observation_descriptors(obs)[0].codes[j - a][None]  # the observation's own bytes
+    code = obs.descriptor[j][None]  # the observation's own bytes
     copied = QueryFeatures(np.concatenate([feats.uv, spot[None]]),
                            np.concatenate([feats.descriptor, unit_descriptors(code)]),
                            np.concatenate([feats.codes, code]))

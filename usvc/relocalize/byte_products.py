@@ -66,11 +66,6 @@ class ByteRows:
             return cls(values, signed, _SHIFT * signed.sum(dim=1, dtype=torch.int32))
         return cls(values)
 
-    @property
-    def codes(self) -> np.ndarray:
-        """(n,128) uint8: the descriptors."""
-        return self.values.astype(np.uint8)
-
     def __len__(self) -> int:
         return len(self.values)
 

@@ -25,7 +25,7 @@ import pycolmap
 
 from usvc.core import opencv_sift
 from usvc.core.device import cuda_index
-from usvc.landmarks.landmark_table import encode_descriptors, unit_descriptors
+from usvc.landmarks.landmark_table import unit_descriptors
 from usvc.relocalize.options import EXTRACTORS
 
 log = logging.getLogger(__name__)
@@ -36,11 +36,12 @@ _GPU_LOCKS: defaultdict[int, threading.Lock] = defaultdict(threading.Lock)  # on
 class QueryFeatures:
     uv: np.ndarray  # (K,2) float64 keypoints, COLMAP pixel convention, in the image they were found in
     descriptor: np.ndarray  # (K,128) float32 unit rows
-    codes: np.ndarray | None = None  # (K,128) uint8: COLMAP's encoding of them (default: encoded from `descriptor`)
+    codes: np.ndarray | None = None  # (K,128) uint8: COLMAP's encoding of them (default: encoded from `descriptor`,
+    # as the sfm stage encodes OpenCV's: `opencv_sift.colmap_descriptors`)
 
     def __post_init__(self) -> None:
         if self.codes is None:  # the per-image matching compares these bytes (`byte_products`)
-            object.__setattr__(self, "codes", encode_descriptors(self.descriptor).reshape(-1, 128))
+            object.__setattr__(self, "codes", opencv_sift.colmap_descriptors(self.descriptor).reshape(-1, 128))
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -139,4 +140,4 @@ def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str | SiftCh
     if choice.kind != "opencv" or choice.gpu is not None:
         raise ValueError(f"unknown SIFT extractor {extractor!r}")
     keypoints, unit = opencv_sift.detect(image, max_features)
-    return QueryFeatures(opencv_sift.colmap_uv(keypoints), unit, opencv_sift.colmap_descriptors(unit))
+    return QueryFeatures(opencv_sift.colmap_uv(keypoints), unit)  # its codes: COLMAP's encoding of `unit`
