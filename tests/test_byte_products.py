@@ -82,6 +82,16 @@ def test_byte_products_are_exact_on_either_unit(monkeypatch, smallest):
             assert np.array_equal(dots(rows_a, rows_b, out).astype(np.int64), want), (int8, out)
         pick = np.array([5, 0, 36])
         assert np.array_equal(dots(rows_a.take(pick), rows_b, blocks).astype(np.int64), want[pick]), int8
+        assert np.array_equal(dots(rows_a, rows_b.rows_between(3, 30), blocks).astype(np.int64), want[:, 3:30]), int8
+        pick_b = np.array([2, 29, 7, 11])
+        assert np.array_equal(dots(rows_a.take(pick), rows_b.take(pick_b).rows_between(1, 3)).astype(np.int64),
+                              want[pick][:, pick_b[1:3]]), int8
+    # the rows guided matching and matching against every landmark compare: code / 512, whose float32
+    # products are those integers / 512² in any order (numpy's BLAS, a single dot, a sum of the terms)
+    sa, sb = byte_products.scaled(a), byte_products.scaled(b)
+    for got in (sa @ sb.T, np.einsum("ij,kj->ik", sa, sb), np.stack([sb @ row for row in sa]),
+                (sa[:, None, ::-1] * sb[None, :, ::-1]).sum(axis=2, dtype=np.float32)):
+        assert got.dtype == np.float32 and np.array_equal(got.astype(np.float64) * byte_products.DOT_SCALE, want)
     if int8_products() and smallest == 0:
         assert dots(ByteRows.of(a, True), ByteRows.of(b, True)).dtype == np.int32  # the int8 units ran
 

@@ -25,6 +25,7 @@ from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_de
 from usvc.landmarks.landmarks_file import landmarks_disagree, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize import feature_job as feature_job_module
+from usvc.relocalize.byte_products import ByteRows, int8_products, scaled
 from usvc.relocalize.feature_refinement import (
     FeatureMatchOptions,
     feature_options,
@@ -70,7 +71,7 @@ def test_guided_matching_finds_the_exact_pose_from_a_perturbed_prior():
     landmarks, feats = scene()
     R0, t0 = prior(5.0, 0.10)
     assert errors(R0, t0)[0] > 4.0  # the prior is 5 deg off
-    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
+    out = refine_by_features(landmarks, scaled(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
     assert out.success and out.path == "guided"
     rot, trans = errors(out.R, out.t)
     assert rot < 0.1 and trans < 0.005  # 0.3 px keypoint noise over ~400 matches
@@ -82,14 +83,14 @@ def test_guided_matching_finds_the_exact_pose_from_a_perturbed_prior():
 def test_a_prior_outside_the_radius_falls_back_to_matching_every_landmark():
     landmarks, feats = scene()
     R0, t0 = prior(40.0, 0.5)  # projections land far outside 24 px
-    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
+    out = refine_by_features(landmarks, scaled(landmarks.descriptor), feats, CAM, R0, t0, OPTS)
     assert out.success and out.path == "global"
     assert out.passes[0]["kind"] == "guided" and out.passes[0]["inliers"] == 0
     assert out.passes[1]["kind"] == "global"
     rot, trans = errors(out.R, out.t)
     assert rot < 0.1 and trans < 0.005
     # no prior at all: straight to the global match
-    none = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), feats, CAM, None, None, OPTS)
+    none = refine_by_features(landmarks, scaled(landmarks.descriptor), feats, CAM, None, None, OPTS)
     assert none.success and none.path == "global" and none.passes[0]["kind"] == "global"
 
 
@@ -113,7 +114,7 @@ def test_a_weak_prior_also_gets_the_matches_to_every_landmark(monkeypatch):
     pose wins; the verified evidence is not asked for (the guided passes found a pose)."""
     landmarks, feats = scene()
     R0, t0 = prior(5.0, 0.10)
-    desc = unit_descriptors(landmarks.descriptor)
+    desc = scaled(landmarks.descriptor)
     mislead_the_guided_passes(monkeypatch)
     asked = []
     strong = refine_by_features(landmarks, desc, feats, CAM, R0, t0, OPTS, verified=lambda: asked.append(1))
@@ -128,7 +129,7 @@ def test_a_weak_prior_also_gets_the_matches_to_every_landmark(monkeypatch):
 def test_no_pose_from_features_of_another_scene():
     landmarks, _ = scene(0)
     _, other = scene(1)  # same layout, unrelated descriptors
-    out = refine_by_features(landmarks, unit_descriptors(landmarks.descriptor), other, CAM, *prior(5.0, 0.1), OPTS)
+    out = refine_by_features(landmarks, scaled(landmarks.descriptor), other, CAM, *prior(5.0, 0.1), OPTS)
     assert not out.success and out.path == "" and "no pose" in out.why
     assert out.R is None and out.t is None
 
@@ -137,19 +138,19 @@ def test_guided_matches_stay_within_the_radius_and_are_one_to_one():
     landmarks, feats = scene()
     idx, uv = visible_landmarks(landmarks, CAM, R_TRUE, T_TRUE, 45.0)
     assert len(idx) == N_POINTS
-    li, ki = guided_matches(uv, unit_descriptors(landmarks.descriptor)[idx], feats, 3.0, 0.8)
+    li, ki = guided_matches(uv, scaled(landmarks.descriptor)[idx], feats, 3.0, 0.8)
     assert len(li) > 0.9 * N_POINTS
     assert np.all(np.linalg.norm(uv[li] - feats.uv[ki], axis=1) <= 3.0)
     assert len(set(ki.tolist())) == len(ki)
     assert np.mean(idx[li] == ki) > 0.99  # keypoint k of the first N_POINTS is landmark k
-    gl, gk = global_matches(unit_descriptors(landmarks.descriptor), feats, 0.8)
+    gl, gk = global_matches(scaled(landmarks.descriptor), feats, 0.8)
     assert len(gl) > 0.9 * N_POINTS and np.mean(gl == gk) > 0.99
 
 
 def _reference_guided(lm_uv, lm_desc, feats, radius, ratio):
     """Guided matching as its definition reads, on the full matrices: per landmark, the nearest
     keypoint within the radius (the first on ties), ratio test, then one landmark per keypoint."""
-    sim = lm_desc @ feats.descriptor.T
+    sim = lm_desc @ feats.scaled.T
     near = np.linalg.norm(lm_uv[:, None] - feats.uv[None], axis=2) <= radius
     rows, cols, dist = [], [], []
     for i in range(len(lm_uv)):
@@ -168,7 +169,7 @@ def _reference_guided(lm_uv, lm_desc, feats, radius, ratio):
 
 def _reference_global(lm_desc, feats, ratio):
     """Matching against every landmark as its definition reads: nearest, ratio test, mutual."""
-    sim = feats.descriptor @ lm_desc.T
+    sim = feats.scaled @ lm_desc.T
     best = np.argmax(sim, axis=1)
     top2 = -np.sort(-sim, axis=1)[:, :2]
     d = np.sqrt(np.maximum(2 - 2 * top2, 0))
@@ -195,7 +196,7 @@ def test_guided_and_global_matching_are_their_definitions(tile_cost: float, dens
     monkeypatch.setattr(device_matching, "_CHUNK_ENTRIES", 96 * 700)  # the same on a device
     monkeypatch.setattr(feature_refinement, "_PAIRS", 500)  # several blocks of pairs
     landmarks, feats = scene(3)
-    desc = unit_descriptors(landmarks.descriptor)
+    desc = scaled(landmarks.descriptor)
     R, t = prior(2.0, 0.02)  # off the true pose: landmarks project a few px from their keypoints
     idx, uv = visible_landmarks(landmarks, CAM, R, t, 45.0)
     for radius in (1.0, 4.0, 12.0, 40.0):
@@ -210,6 +211,10 @@ def test_guided_and_global_matching_are_their_definitions(tile_cost: float, dens
     got, want = global_matches(desc, twins, 0.8, device), _reference_global(desc, twins, 0.8)
     assert len(want[0]) > N_POINTS / 2 and len(np.unique(want[0])) == len(want[0])
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    if device is None:  # the bytes' own products (int8 where the CPU has them, float32 of the bytes): the same
+        for int8 in (False, True) if int8_products() else (False,):
+            got = global_matches(desc, twins, 0.8, None, ByteRows.of(landmarks.descriptor, int8))
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), int8
 
 
 def test_visible_landmarks_are_their_definition():

@@ -7,7 +7,7 @@ from __future__ import annotations
 from test_feature_refinement import N_POINTS, OPTS, mislead_the_guided_passes, prior, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
 
-from usvc.landmarks.landmark_table import unit_descriptors
+from usvc.relocalize.byte_products import scaled
 from usvc.relocalize.feature_refinement import refine_by_features
 
 
@@ -21,7 +21,7 @@ def test_a_guided_answer_that_the_matches_to_every_landmark_disagree_with_meets_
     from usvc.relocalize.query_evidence import QueryEvidence
 
     landmarks, feats = scene()
-    desc = unit_descriptors(landmarks.descriptor)
+    desc = scaled(landmarks.descriptor)
     R0, t0 = prior(5.0, 0.10)
     evidence = QueryEvidence(landmarks, desc, None, feats, OPTS, CAM, seed=0)
     explained, reference = evidence.agreement(R_TRUE, T_TRUE, CAM)

@@ -77,6 +77,14 @@ class ByteRows:
             return ByteRows(self.values[rows])
         return ByteRows(self.values[rows], source=base, rows=index)
 
+    def rows_between(self, start: int, stop: int) -> ByteRows:
+        """Rows start to stop (views of these, without a copy, where these are not taken rows)."""
+        if self.source is not None:
+            return self.take(np.arange(start, stop))
+        if self.signed is None:
+            return ByteRows(self.values[start:stop])
+        return ByteRows(self.values[start:stop], self.signed[start:stop], self.offset[start:stop])
+
     def int8(self) -> tuple[torch.Tensor, torch.Tensor] | None:
         """(signed bytes, offsets) of these rows, or None where they are held for float32 products only."""
         if self.signed is not None:
@@ -120,6 +128,14 @@ def dots(a: ByteRows, b: ByteRows, blocks: ProductBlocks | None = None) -> np.nd
         return c.numpy()
     out = None if blocks is None else blocks.block(np.float32, n * m).reshape(n, m)
     return np.matmul(a.values, b.values.T, out=out)
+
+
+def scaled(codes: np.ndarray) -> np.ndarray:
+    """Descriptors in COLMAP's uint8 encoding as float32 rows of code / 512: near-unit vectors whose
+    float32 products are the bytes' exact integer dots / 512² (each term and partial sum an integer
+    times 2^-18, below 2^6: exact in float32 in any order, as DOT_SCALE = 2^18). So matching by these
+    similarities is matching by COLMAP's integer dots, the same on every CPU, BLAS and GPU."""
+    return np.asarray(codes, dtype=np.uint8).reshape(-1, _DIMS).astype(np.float32) * np.float32(1.0 / 512.0)
 
 
 def angles(dot: np.ndarray) -> np.ndarray:

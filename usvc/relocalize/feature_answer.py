@@ -33,6 +33,7 @@ class FeatureAnswers:
     seed: int
     prior: bool
     _landmark_desc: np.ndarray
+    _landmark_bytes: ByteRows
     _observation_desc: list[ByteRows] | None
 
     def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
@@ -57,7 +58,8 @@ class FeatureAnswers:
         opts = feature_options(self.options, min(found_set.gray.shape), matching_device(self.device),
                                torch.get_num_threads())
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
-                                 self.seed, use_global=self.prior, global_pairs=global_pairs)
+                                 self.seed, use_global=self.prior, global_pairs=global_pairs,
+                                 landmark_bytes=self._landmark_bytes)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is

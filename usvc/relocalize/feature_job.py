@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from usvc.model.preprocess import resize_to_short_side
+from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.feature_refinement import global_matches
 from usvc.relocalize.query_features import QueryFeatures, SiftChoice, extract_sift
 
@@ -116,6 +117,6 @@ def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extract
 
 
 def global_match_job(landmark_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
-                     background: bool | None = None) -> Job:
+                     background: bool | None = None, landmark_bytes: ByteRows | None = None) -> Job:
     """`global_matches` (the keypoints' matches to every landmark, products on `device`), as a `Job`."""
-    return Job(global_matches, landmark_desc, feats, ratio, device, background=background)
+    return Job(global_matches, landmark_desc, feats, ratio, device, landmark_bytes, background=background)

@@ -27,6 +27,13 @@ from scipy.spatial import cKDTree
 from usvc.core.geometry import camera_centers
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
+from usvc.relocalize.byte_products import (
+    DOT_SCALE,
+    MASKED,
+    ByteRows,
+    ProductBlocks,
+    dots,
+)
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.pnp import in_image, project_points, solve_pnp
@@ -176,7 +183,7 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     if len(lm_uv) == 0 or len(feats) == 0:
         return empty
     if device is None and tiles_pay(lm_uv, feats.uv, radius, _TILE_PAIR_COST):
-        first, s1, s2 = row_best_two_within(lm_uv, lm_desc, feats.uv, feats.descriptor, radius)
+        first, s1, s2 = row_best_two_within(lm_uv, lm_desc, feats.uv, feats.scaled, radius)
         ok, d1 = _ratio_test(s1, s2, ratio)
         rows = np.flatnonzero(ok)
         return _one_to_one(rows, first[rows], d1[rows])
@@ -186,7 +193,7 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     lm, kp = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     cells = len(lm_uv) * len(feats)
     if device is not None and cells <= _DENSE_SIMILARITY and len(lm) * _DENSE_PAIR_SHARE >= cells:
-        first, s1, s2 = masked_row_best_two(lm_desc, feats.descriptor, lm, kp, device)
+        first, s1, s2 = masked_row_best_two(lm_desc, feats.scaled, lm, kp, device)
         ok, d1 = _ratio_test(s1, s2, ratio)  # a landmark with no keypoint in reach has s1 = -inf: fails
         rows = np.flatnonzero(ok)
         return _one_to_one(rows, first[rows], d1[rows])
@@ -197,7 +204,7 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     sim = np.empty(len(kp), np.float32)
     for a in range(0, len(kp), _PAIRS):  # bounded memory: _PAIRS x 128 floats per side
         b = min(a + _PAIRS, len(kp))
-        sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.descriptor[kp[a:b]])
+        sim[a:b] = np.einsum("ij,ij->i", lm_desc[lm[a:b]], feats.scaled[kp[a:b]])
     best = np.maximum.reduceat(sim, starts)
     # the first pair of each landmark that reaches its best similarity
     first = np.flatnonzero(sim == np.repeat(best, counts))
@@ -208,27 +215,37 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
     return _one_to_one(rows_with[ok], kp[first][ok], d1[ok])
 
 
-def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float,
-                   device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
+                   lm_bytes: ByteRows | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(landmark rows, keypoint rows): each keypoint's nearest landmark by descriptor, ratio test
     against the second nearest landmark, mutual (the keypoint is also the landmark's nearest: the
-    first keypoint that reaches the landmark's largest similarity). With a torch `device` the
-    products and their reductions run there (`device_matching`)."""
+    first keypoint that reaches the landmark's largest similarity). `lm_desc`: the landmarks'
+    bytes as `byte_products.scaled` rows, whose products are their integer dots / 512²; `lm_bytes`:
+    the same bytes held for `byte_products.dots` (int8 products where the CPU has them: the same
+    integers, so the same matches, at ~3x the speed). With a torch `device` the products and their
+    reductions run there (`device_matching`)."""
     k = len(feats)
     if k == 0 or len(lm_desc) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if device is not None:
-        best_s, best_i, lm_max = best_two_and_column_max(feats.descriptor, lm_desc, device)
+        best_s, best_i, lm_max = best_two_and_column_max(feats.scaled, lm_desc, device)
     else:
         best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
         best_i = np.zeros(k, dtype=np.int64)
         lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
-        block = np.empty(k * min(_CHUNK, len(lm_desc)), dtype=np.float32)  # one block's products, reused:
-        for start in range(0, len(lm_desc), _CHUNK):  # a fresh multi-MB array per block costs its page faults
-            chunk = lm_desc[start:start + _CHUNK]
-            sim = np.matmul(feats.descriptor, chunk.T, out=block[:k * len(chunk)].reshape(k, len(chunk)))
-            lm_max[start:start + sim.shape[1]] = sim.max(axis=0)
-            first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
+        query = None if lm_bytes is None else ByteRows.of(feats.codes, lm_bytes.signed is not None)
+        blocks = ProductBlocks(k * min(_CHUNK, len(lm_desc)))  # one block's products, reused: a fresh
+        for start in range(0, len(lm_desc), _CHUNK):  # multi-MB array per block costs its page faults
+            stop = min(start + _CHUNK, len(lm_desc))
+            if query is None:
+                sim = np.matmul(feats.scaled, lm_desc[start:stop].T,
+                                out=blocks.block(np.float32, k * (stop - start)).reshape(k, stop - start))
+                lm_max[start:stop] = sim.max(axis=0)
+                first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
+            else:  # the integer dots, scaled by 2^-18 as the scaled rows' products are: the same floats
+                sim = dots(query, lm_bytes.rows_between(start, stop), blocks)
+                lm_max[start:stop] = sim.max(axis=0).astype(np.float32) / np.float32(DOT_SCALE)
+                first, s1, s2 = _row_best_two_dots(sim)
             best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
             cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
             cand.sort(axis=1)
@@ -240,6 +257,19 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float,
     mutual[reach[once]] = True
     cols = np.flatnonzero(ok & mutual)
     return best_i[cols], cols
+
+
+def _row_best_two_dots(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_row_best_two` of a block of integer dots of bytes (`byte_products.dots`), the similarities
+    scaled to the scaled rows' (float32, / 512²: exact), -inf where a row has no second."""
+    rows = np.arange(len(sim))
+    first = np.argmax(sim, axis=1)
+    s1 = sim[rows, first]
+    sim[rows, first] = MASKED  # below every dot of bytes
+    s2 = sim.max(axis=1) if sim.shape[1] > 1 else np.full(len(sim), MASKED, sim.dtype)
+    scale = np.float32(DOT_SCALE)
+    return first, s1.astype(np.float32) / scale, np.where(s2 == MASKED, -np.inf, s2.astype(np.float32) / scale
+                                                          ).astype(np.float32)
 
 
 def _pnp(uv: np.ndarray, xyz: np.ndarray, camera: Camera, opts: FeatureMatchOptions, seed: int):

@@ -29,8 +29,10 @@ class QueryEvidence:
     def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[ByteRows] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
                  use_global: bool = True,
-                 global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+                 global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+                 landmark_bytes: ByteRows | None = None) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
+        self.landmark_bytes = landmark_bytes  # the landmarks' bytes for the global matches' int8 products
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
         self._global: tuple[np.ndarray, np.ndarray] | None = None
@@ -43,7 +45,8 @@ class QueryEvidence:
         """(landmark rows, keypoint rows) of the matches to every landmark."""
         if self._global is None:
             self._global = self._global_source() if self._global_source is not None \
-                else global_matches(self.landmark_desc, self.feats, self.opts.ratio, self.opts.device)
+                else global_matches(self.landmark_desc, self.feats, self.opts.ratio, self.opts.device,
+                                    self.landmark_bytes)
         return self._global
 
     def global_focal_pose(self) -> FocalPose | None:

@@ -18,7 +18,7 @@ import functools
 import logging
 import threading
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pycolmap
@@ -26,6 +26,7 @@ import pycolmap
 from usvc.core import opencv_sift
 from usvc.core.device import cuda_index
 from usvc.landmarks.landmark_table import unit_descriptors
+from usvc.relocalize.byte_products import scaled
 from usvc.relocalize.options import EXTRACTORS
 
 log = logging.getLogger(__name__)
@@ -38,10 +39,12 @@ class QueryFeatures:
     descriptor: np.ndarray  # (K,128) float32 unit rows
     codes: np.ndarray | None = None  # (K,128) uint8: COLMAP's encoding of them (default: encoded from `descriptor`,
     # as the sfm stage encodes OpenCV's: `opencv_sift.colmap_descriptors`)
+    scaled: np.ndarray = field(init=False, repr=False)  # (K,128) float32: codes / 512, what matching compares
 
     def __post_init__(self) -> None:
-        if self.codes is None:  # the per-image matching compares these bytes (`byte_products`)
+        if self.codes is None:  # every match of the query compares these bytes (`byte_products`)
             object.__setattr__(self, "codes", opencv_sift.colmap_descriptors(self.descriptor).reshape(-1, 128))
+        object.__setattr__(self, "scaled", scaled(self.codes))
 
     def __len__(self) -> int:
         return len(self.uv)

@@ -24,7 +24,7 @@ from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
 from usvc.core.undistort import undistort
-from usvc.landmarks.landmark_table import Landmarks, unit_descriptors
+from usvc.landmarks.landmark_table import Landmarks
 from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
 from usvc.model.head import Regressor
@@ -32,6 +32,7 @@ from usvc.model.map_file import load_map, map_keypoints, read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.feature_job import Job, feature_job, global_match_job, runs_beside
+from usvc.relocalize.byte_products import ByteRows, scaled
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_answer import FeatureAnswers
 from usvc.relocalize.feature_refinement import FeatureResult
@@ -153,7 +154,8 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         if why:
             raise UsvcError(f"{path} are not the landmarks of map {self.map_path}: {why}")
         self.landmarks, self.landmarks_path = found, path
-        self._landmark_desc = unit_descriptors(found.descriptor)
+        self._landmark_desc = scaled(found.descriptor)  # matched by COLMAP's integer dots (`byte_products`)
+        self._landmark_bytes = ByteRows.of(found.descriptor)
         self._observation_desc = observation_descriptors(found.observations) if found.observations is not None \
             else None
         if not self.prior and found.observations is None:
@@ -315,7 +317,8 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
             found_set = job.result()  # matches to every landmark where a verdict or a fallback needs them
             if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
                 global_pairs = global_match_job(self._landmark_desc, found_set.feats, self.options.features_ratio,
-                                                matching_device(self.device)).result
+                                                matching_device(self.device),
+                                                landmark_bytes=self._landmark_bytes).result
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.
