@@ -66,6 +66,26 @@ def test_mutual_ratio_matching_is_colmaps_rule_on_the_bytes_with_ties(device, in
         assert np.array_equal(q, want) and np.array_equal(m, first[want]), trial
 
 
+def test_mutual_test_is_numpys_first_row_of_each_column_maximum_with_every_kind_of_tie():
+    """The mutual test keeps a candidate row exactly where np.argmax along its column names it: on
+    small integer dots full of ties (rows whose own nearest column ties with another, rows that
+    failed the ratio test reaching a column's maximum, candidates sharing a column), for both
+    dtypes the products give."""
+    from usvc.relocalize.verified_matching import _mutual
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        shape = (int(rng.integers(1, 12)), int(rng.integers(1, 9)))
+        for dtype in (np.int32, np.float32):
+            sim = rng.integers(0, 4, shape).astype(dtype)
+            first = np.argmax(sim, axis=1)
+            q = np.flatnonzero(rng.random(shape[0]) < 0.7)  # the rows that passed the ratio test
+            want = q[np.argmax(sim[:, first[q]], axis=0) == q] if len(q) else q
+            before = sim.copy()
+            got, cols = _mutual(sim, q, first)
+            assert np.array_equal(got, want) and np.array_equal(cols, first[want]), (trial, dtype)
+            assert np.array_equal(sim, before)  # the block is left as it was
+
+
 @pytest.mark.parametrize("smallest", [0, byte_products.INT8_MIN_ENTRIES])  # every product on int8 units; the default
 def test_byte_products_are_exact_on_either_unit(monkeypatch, smallest):
     """int8 products (offsets added back) and float32 products of the bytes are the integers an
