@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -37,6 +38,7 @@ from usvc.relocalize.byte_products import (
 from usvc.relocalize.device_matching import best_two_and_column_max, masked_row_best_two
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.pnp import in_image, project_points, solve_pnp
+from usvc.relocalize.query_cores import products_on_own_threads
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
 from usvc.relocalize.verified_matching import VerifiedMatches
@@ -235,21 +237,22 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, devi
         lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
         query = None if lm_bytes is None else ByteRows.of(feats.codes, lm_bytes.signed is not None)
         blocks = ProductBlocks(k * min(_CHUNK, len(lm_desc)))  # one block's products, reused: a fresh
-        for start in range(0, len(lm_desc), _CHUNK):  # multi-MB array per block costs its page faults
-            stop = min(start + _CHUNK, len(lm_desc))
-            if query is None:
-                sim = np.matmul(feats.scaled, lm_desc[start:stop].T,
-                                out=blocks.block(np.float32, k * (stop - start)).reshape(k, stop - start))
-                lm_max[start:stop] = sim.max(axis=0)
-                first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
-            else:  # the integer dots, scaled by 2^-18 as the scaled rows' products are: the same floats
-                sim = dots(query, lm_bytes.rows_between(start, stop), blocks)
-                lm_max[start:stop] = sim.max(axis=0).astype(np.float32) / np.float32(DOT_SCALE)
-                first, s1, s2 = _row_best_two_dots(sim)
-            best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
-            cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
-            cand.sort(axis=1)
-            best_s = cand[:, :1:-1]  # the two largest, largest first
+        with products_on_own_threads() if query is not None else nullcontext():  # int8: this thread alone
+            for start in range(0, len(lm_desc), _CHUNK):  # multi-MB array per block costs its page faults
+                stop = min(start + _CHUNK, len(lm_desc))
+                if query is None:
+                    sim = np.matmul(feats.scaled, lm_desc[start:stop].T,
+                                    out=blocks.block(np.float32, k * (stop - start)).reshape(k, stop - start))
+                    lm_max[start:stop] = sim.max(axis=0)
+                    first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
+                else:  # the integer dots, scaled by 2^-18 as the scaled rows' products are: the same floats
+                    sim = dots(query, lm_bytes.rows_between(start, stop), blocks)
+                    lm_max[start:stop] = sim.max(axis=0).astype(np.float32) / np.float32(DOT_SCALE)
+                    first, s1, s2 = _row_best_two_dots(sim)
+                best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
+                cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
+                cand.sort(axis=1)
+                best_s = cand[:, :1:-1]  # the two largest, largest first
     reach = np.flatnonzero(best_s[:, 0] == lm_max[best_i])  # keypoints that reach their landmark's largest ...
     _, once = np.unique(best_i[reach], return_index=True)  # ... the first of them per landmark: mutual
     ok, _ = _ratio_test(best_s[:, 0], best_s[:, 1], ratio)
