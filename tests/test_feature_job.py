@@ -34,7 +34,7 @@ def test_features_found_beside_the_network_are_those_found_in_place():
     gray = textured()
     inline = find_features(gray, 240, 2000, "opencv")
     assert inline.resized and min(inline.gray.shape) == 240 and len(inline.feats) > 100
-    desc = inline.feats.descriptor[::3]  # landmarks that some keypoints match
+    desc = inline.feats.scaled[::3]  # landmarks that some keypoints match (their bytes, as the landmarks hold them)
     pairs = global_matches(desc, inline.feats, 0.8)
     assert len(pairs[0]) >= 0.9 * len(desc)  # their own keypoints
     for background in (False, True):

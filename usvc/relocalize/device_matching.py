@@ -26,7 +26,7 @@ def _tensor(a: np.ndarray, device: torch.device) -> torch.Tensor:
 
 def masked_row_best_two(rows: np.ndarray, cols: np.ndarray, pair_rows: np.ndarray, pair_cols: np.ndarray,
                         device: str | torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of `rows` (unit descriptors): among the `cols` descriptors paired with it
+    """Per row of `rows` (`byte_products.scaled` rows: exact products): among the `cols` descriptors paired with it
     (`pair_rows`, `pair_cols`: the pairs in reach), the column of the largest similarity and the
     largest and second largest (-inf where fewer): `_row_best_two` of the masked product."""
     device = torch.device(device)
@@ -48,7 +48,7 @@ def _top_two(sim: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def best_two_and_column_max(query: np.ndarray, landmarks: np.ndarray,
                             device: str | torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For the keypoints' unit descriptors `query` against every landmark's `landmarks`: each
+    """For the keypoints' descriptors (`byte_products.scaled` rows) `query` against every landmark's `landmarks`: each
     keypoint's two largest similarities (largest first) and the landmark of the largest, and each
     landmark's largest similarity to a keypoint. Blocks of landmarks bound the device memory."""
     device = torch.device(device)

@@ -138,7 +138,7 @@ def visible_landmarks(landmarks: Landmarks, camera: Camera, R: np.ndarray, t: np
 
 
 def _distance(sim: np.ndarray) -> np.ndarray:
-    """Euclidean distance of unit descriptors from their dot product (inf for -inf)."""
+    """Euclidean distance of (near-)unit descriptors from their dot product (inf for -inf)."""
     return np.where(np.isfinite(sim), np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0)), np.inf).astype(np.float32)
 
 
@@ -410,7 +410,7 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
     may have settled on a wrong pose), matching against every landmark (unless not `use_global`;
     `global_pairs` gives those matches when they are computed already); when the guided passes find
     none, SIFT + PnP's evidence too (`verified`, called only then: it is the expensive one). The
-    hypothesis with the most support wins. `lm_desc` are the landmarks' unit descriptors. The
+    hypothesis with the most support wins. `lm_desc` are the landmarks' `byte_products.scaled` rows. The
     answer's last pass (opts.final) is `last_pass.last_pass`'s, after this. With `agreement` (how many of the
     matches to every landmark a result explains, and how many their own pose explains; None when
     they give no pose), a guided winner that did not compete with them is checked: one that explains

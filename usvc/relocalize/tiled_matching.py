@@ -68,7 +68,7 @@ def _blocks(lm_uv: np.ndarray, kp_uv: np.ndarray, radius: float) -> list[tuple[n
 
 def row_best_two_within(lm_uv: np.ndarray, lm_desc: np.ndarray, kp_uv: np.ndarray, kp_desc: np.ndarray,
                         radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per landmark (rows of `lm_uv`, unit descriptors `lm_desc`): among the keypoints within
+    """Per landmark (rows of `lm_uv`, descriptors `lm_desc`, `byte_products.scaled` rows): among the keypoints within
     `radius` px, the row of the most similar (the first on ties), its similarity and the second
     largest (-inf where there are fewer such keypoints; the row then 0)."""
     n = len(lm_uv)
