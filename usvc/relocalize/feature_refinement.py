@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -151,18 +150,6 @@ def _one_to_one(rows: np.ndarray, cols: np.ndarray, dist: np.ndarray) -> tuple[n
     return rows[sel], cols[sel]
 
 
-def _row_best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row: the column of the largest entry (the first on ties), the largest and the second
-    largest (-inf where the row has no other). Overwrites each row's largest entry with -inf:
-    reductions along rows only, the contiguous (fast) direction, and no copy."""
-    rows = np.arange(len(sim))
-    first = np.argmax(sim, axis=1)
-    s1 = sim[rows, first]
-    sim[rows, first] = -np.inf
-    s2 = sim.max(axis=1) if sim.shape[1] > 1 else np.full(len(sim), -np.inf, sim.dtype)
-    return first, s1, s2
-
-
 def _ratio_test(s1: np.ndarray, s2: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """(passes Lowe's ratio test, nearest distance) from the two largest similarities."""
     d1, d2 = _distance(s1), _distance(s2)
@@ -222,33 +209,30 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, devi
     """(landmark rows, keypoint rows): each keypoint's nearest landmark by descriptor, ratio test
     against the second nearest landmark, mutual (the keypoint is also the landmark's nearest: the
     first keypoint that reaches the landmark's largest similarity). `lm_desc`: the landmarks'
-    bytes as `byte_products.scaled` rows, whose products are their integer dots / 512²; `lm_bytes`:
-    the same bytes held for `byte_products.dots` (int8 products where the CPU has them: the same
-    integers, so the same matches, at ~3x the speed). With a torch `device` the products and their
-    reductions run there (`device_matching`)."""
+    bytes as `byte_products.scaled` rows, whose products are their integer dots / 512²; on the CPU
+    those integers come from `byte_products.dots` on `lm_bytes`, the same bytes held for it (made
+    from `lm_desc` when not given: a caller holds them once per map), as int8 products where the
+    CPU has them. With a torch `device` the products of the scaled rows and their reductions run
+    there (`device_matching`): the same similarities."""
     k = len(feats)
     if k == 0 or len(lm_desc) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if device is not None:
         best_s, best_i, lm_max = best_two_and_column_max(feats.scaled, lm_desc, device)
     else:
+        if lm_bytes is None:
+            lm_bytes = ByteRows.of(np.rint(np.asarray(lm_desc, np.float64) * 512.0).astype(np.uint8))
         best_s = np.full((k, 2), -np.inf, dtype=np.float32)  # each keypoint's two largest similarities so far
         best_i = np.zeros(k, dtype=np.int64)
         lm_max = np.empty(len(lm_desc), dtype=np.float32)  # each landmark's largest similarity to a keypoint
-        query = None if lm_bytes is None else ByteRows.of(feats.codes, lm_bytes.signed is not None)
+        query = ByteRows.of(feats.codes, lm_bytes.signed is not None)
         blocks = ProductBlocks(k * min(_CHUNK, len(lm_desc)))  # one block's products, reused: a fresh
-        with products_on_own_threads() if query is not None else nullcontext():  # int8: this thread alone
-            for start in range(0, len(lm_desc), _CHUNK):  # multi-MB array per block costs its page faults
+        with products_on_own_threads():  # multi-MB array per block costs its page faults; int8: this thread alone
+            for start in range(0, len(lm_desc), _CHUNK):
                 stop = min(start + _CHUNK, len(lm_desc))
-                if query is None:
-                    sim = np.matmul(feats.scaled, lm_desc[start:stop].T,
-                                    out=blocks.block(np.float32, k * (stop - start)).reshape(k, stop - start))
-                    lm_max[start:stop] = sim.max(axis=0)
-                    first, s1, s2 = _row_best_two(sim)  # (K, chunk): per keypoint along rows
-                else:  # the integer dots, scaled by 2^-18 as the scaled rows' products are: the same floats
-                    sim = dots(query, lm_bytes.rows_between(start, stop), blocks)
-                    lm_max[start:stop] = sim.max(axis=0).astype(np.float32) / np.float32(DOT_SCALE)
-                    first, s1, s2 = _row_best_two_dots(sim)
+                sim = dots(query, lm_bytes.rows_between(start, stop), blocks)  # (K, chunk): exact integers
+                lm_max[start:stop] = sim.max(axis=0).astype(np.float32) / np.float32(DOT_SCALE)
+                first, s1, s2 = _row_best_two(sim)  # per keypoint along rows
                 best_i = np.where(s1 > best_s[:, 0], first + start, best_i)
                 cand = np.stack([best_s[:, 0], best_s[:, 1], s1, s2], axis=1)
                 cand.sort(axis=1)
@@ -262,9 +246,11 @@ def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, devi
     return best_i[cols], cols
 
 
-def _row_best_two_dots(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`_row_best_two` of a block of integer dots of bytes (`byte_products.dots`), the similarities
-    scaled to the scaled rows' (float32, / 512²: exact), -inf where a row has no second."""
+def _row_best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of a block of integer dots of bytes (`byte_products.dots`): the column of the largest
+    entry (the first on ties), the largest and the second largest as the scaled rows' similarities
+    (float32, / 512²: exact; -inf where the row has no other). Overwrites each row's largest entry:
+    reductions along rows only, the contiguous (fast) direction, and no copy."""
     rows = np.arange(len(sim))
     first = np.argmax(sim, axis=1)
     s1 = sim[rows, first]
