@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from usvc.core.errors import UsvcError
 from usvc.core.pose_errors import rotation_error_deg, translation_error
-from usvc.core.scene import Camera
+from usvc.core.scene import CAMERA_MODELS, Camera
 from usvc.relocalize.options import BACKENDS
 from usvc.relocalize.pnp import solve_pnp
 
@@ -123,12 +123,49 @@ def test_a_low_trial_floor_leaves_the_adaptive_stop_in_charge():
     assert rotation_error_deg(low.R, full.R) < 1e-6 and translation_error(low.R, low.t, full.R, full.t) < 1e-7
 
 
-def test_min_trials_is_pycolmaps_and_bounded():
+def test_min_trials_is_the_lo_ransac_backends_and_bounded():
     uv, xw, _ = make_correspondences(PINHOLE, n=50, outlier_ratio=0.0)
-    with pytest.raises(UsvcError, match="min_trials=10: only the pycolmap backend"):
+    with pytest.raises(UsvcError, match="min_trials=10: only the pycolmap and poselib backends"):
         solve_pnp(uv, xw, PINHOLE, backend="opencv", min_trials=10)
-    with pytest.raises(UsvcError, match="min_trials=0"):
-        solve_pnp(uv, xw, PINHOLE, backend="pycolmap", min_trials=0)
+    for backend in ("pycolmap", "poselib"):
+        with pytest.raises(UsvcError, match="min_trials=0"):
+            solve_pnp(uv, xw, PINHOLE, backend=backend, min_trials=0)
+        assert solve_pnp(uv, xw, PINHOLE, backend=backend, min_trials=10).success
+
+
+@pytest.mark.parametrize("camera", [PINHOLE, OPENCV], ids=["PINHOLE", "OPENCV"])
+def test_poselib_and_colmap_give_one_pose_on_noisy_nearly_all_inlier_matches(camera):
+    # what the feature passes give them: ~1 % outliers, half-pixel noise. Both minimise the same
+    # Cauchy loss of 1 px over the same inliers, so they agree far below the noise's own effect
+    # (the pose moves by ~0.01 deg and ~1e-4 of the distance from one noise draw to the next)
+    uv, xw, outlier = make_correspondences(camera, n=600, outlier_ratio=0.01, seed=21)
+    noisy = uv + np.random.default_rng(4).normal(0.0, 0.5, uv.shape)
+    a = solve_pnp(noisy, xw, camera, max_error_px=4.0, backend="pycolmap", min_trials=20)
+    b = solve_pnp(noisy, xw, camera, max_error_px=4.0, backend="poselib", min_trials=20)
+    assert a.success and b.success
+    np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+    assert not b.inlier_mask[outlier].any()
+    assert rotation_error_deg(a.R, b.R) < 1e-3 and translation_error(a.R, a.t, b.R, b.t) < 1e-5
+    other = solve_pnp(uv + np.random.default_rng(5).normal(0.0, 0.5, uv.shape), xw, camera, max_error_px=4.0,
+                      backend="pycolmap", min_trials=20)
+    assert rotation_error_deg(a.R, other.R) > 10 * rotation_error_deg(a.R, b.R)  # the margin means something
+
+
+@pytest.mark.parametrize("model", sorted(CAMERA_MODELS))
+def test_poselib_projects_every_camera_model_as_colmap_does(model):
+    import poselib
+
+    extra = {"SIMPLE_PINHOLE": (), "PINHOLE": (), "SIMPLE_RADIAL": (-0.05,), "RADIAL": (-0.05, 0.01),
+             "OPENCV": (-0.1, 0.02, 1e-3, -2e-3), "OPENCV_FISHEYE": (0.05, -0.01, 2e-3, -1e-3),
+             "FULL_OPENCV": (-0.1, 0.02, 1e-3, -2e-3, 1e-3, 0.01, -2e-3, 1e-4)}[model]
+    base = (500.0,) if model.startswith("SIMPLE") or model == "RADIAL" else (500.0, 510.0)
+    params = [*base, 321.0, 239.0, *extra]
+    assert len(params) == CAMERA_MODELS[model]
+    normalized = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 2))
+    colmap = pycolmap.Camera(model=model, width=640, height=480, params=params)
+    expected = np.asarray(colmap.img_from_cam(np.c_[normalized, np.ones(50)]), np.float64)
+    got = poselib.Camera(model, params, 640, 480).project(normalized)
+    np.testing.assert_allclose(got, expected, atol=1e-9)
 
 
 def test_feature_pnps_use_the_lower_trial_floor(monkeypatch):
@@ -145,4 +182,34 @@ def test_feature_pnps_use_the_lower_trial_floor(monkeypatch):
     opts = F.FeatureMatchOptions(radii_px=(8.0,), ratio=0.8, max_error_px=4.0, min_inliers=20, view_margin_deg=45.0)
     res = F._pnp(uv, xw, PINHOLE, opts, seed=0)
     assert res is not None and rotation_error_deg(res.R, R_TRUE) < 1e-3
-    assert seen["backend"] == "pycolmap" and seen["min_trials"] == F.FEATURE_MIN_TRIALS < 100
+    assert seen["backend"] == "poselib" and seen["min_trials"] == F.FEATURE_MIN_TRIALS < 100
+    res = F._pnp(uv, xw, PINHOLE, F.replace(opts, pnp="pycolmap"), seed=0)
+    assert res is not None and seen["backend"] == "pycolmap"
+
+
+def test_sift_and_pnps_own_evidence_keeps_colmaps_pnp(monkeypatch):
+    # the verified path is SIFT + PnP's registration of a query: COLMAP's LO-RANSAC, as the baseline
+    from usvc.relocalize import feature_refinement as F
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["backend"])
+        return solve_pnp(*args, **kwargs)
+
+    monkeypatch.setattr(F, "solve_pnp", spy)
+    uv, xw, _ = make_correspondences(PINHOLE, n=100, outlier_ratio=0.1)
+
+    class Found:  # the parts of VerifiedMatches that from_verified reads
+        images, verified_pairs, keypoint, landmark = 3, 3, np.arange(100), np.arange(100)
+
+        def __len__(self):
+            return 100
+
+    class Map:  # the parts of Landmarks it reads
+        xyz, image_short_side = xw, 480
+
+    opts = F.FeatureMatchOptions(radii_px=(8.0,), ratio=0.8, max_error_px=4.0, min_inliers=20, view_margin_deg=45.0)
+    feats = type("Feats", (), {"uv": uv})()
+    out = F.from_verified(Map(), np.zeros((100, 128), np.float32), feats, PINHOLE, Found(), opts)
+    assert out.success and out.path == "verified" and seen == ["pycolmap"]

@@ -81,6 +81,7 @@ class FeatureMatchOptions:
     device: str | None = None  # the torch device of the descriptor products (None: numpy, on the CPU)
     final: str = "confirmed"  # the answer's last pass: confirmed (`confirmed_pass`) | guided (none) | images (`images_pass`)
     threads: int = 1  # the query's threads: SIFT + PnP's pairs and the images pass's images side by side on them
+    pnp: str = "poselib"  # the passes' LO-RANSAC PnP backend (`pnp.solve_pnp`): poselib | pycolmap
 
 
 def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None,
@@ -92,7 +93,7 @@ def feature_options(options: RelocalizeOptions, short_side: int, device: str | N
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
                                view_margin_deg=options.features_view_margin_deg, device=device,
-                               final=options.features_final, threads=threads)
+                               final=options.features_final, threads=threads, pnp=options.features_pnp)
 
 
 @dataclass
@@ -265,7 +266,7 @@ def _pnp(uv: np.ndarray, xyz: np.ndarray, camera: Camera, opts: FeatureMatchOpti
     if len(uv) < max(opts.min_inliers, 4):
         return None
     res = solve_pnp(uv, xyz, camera, max_error_px=opts.max_error_px, seed=seed, min_inliers=opts.min_inliers,
-                    backend="pycolmap", min_trials=FEATURE_MIN_TRIALS)
+                    backend=opts.pnp, min_trials=FEATURE_MIN_TRIALS)
     return res if res.success else None
 
 
@@ -355,7 +356,7 @@ def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures,
 
 def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
                   verified: VerifiedMatches, opts: FeatureMatchOptions, seed: int = 0) -> FeatureResult:
-    """SIFT + PnP's evidence (`verified_matches`) and its PnP: LO-RANSAC with refinement at
+    """SIFT + PnP's evidence (`verified_matches`) and its PnP: COLMAP's LO-RANSAC with refinement at
     VERIFIED_MAX_ERROR_PX (at the mapping images' size), as SIFT + PnP registers a query. Not
     tightened by guided passes: a keypoint matched in several mapping images counts once per image
     here, a weighting the one descriptor per landmark of a guided pass loses (on mini the guided
@@ -363,7 +364,7 @@ def from_verified(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeature
     record = {"kind": "verified", "radius_px": None, "candidates": int(verified.images),
               "matches": int(len(verified)), "verified_pairs": int(verified.verified_pairs)}
     scale = min(camera.width, camera.height) / landmarks.image_short_side
-    strict = replace(opts, max_error_px=VERIFIED_MAX_ERROR_PX * scale)
+    strict = replace(opts, max_error_px=VERIFIED_MAX_ERROR_PX * scale, pnp="pycolmap")  # COLMAP's, as SIFT + PnP's
     return _from_correspondences("verified", verified.keypoint, verified.landmark, record, landmarks, lm_desc, feats,
                                  camera, strict, seed, repeats=True, tighten=False)
 

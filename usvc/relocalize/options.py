@@ -11,7 +11,8 @@ from typing import Any
 from usvc.core.options import in_range, one_of, positive
 from usvc.core.precision import PRECISIONS
 
-BACKENDS = ("pycolmap", "opencv")
+BACKENDS = ("pycolmap", "opencv", "poselib")
+FEATURE_PNP = ("poselib", "pycolmap")  # the feature passes' LO-RANSAC PnP (usvc/relocalize/pnp.py)
 REFINE = ("features", "keypoints", "none")
 PRIORS = ("learned", "none")  # what guides refinement by features first
 EXTRACTORS = ("auto", "opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
@@ -38,7 +39,7 @@ def refine_problems(opts: Any, prefix: str = "") -> list[str]:
 class RelocalizeOptions:
     """Relocalization: query -> dense scene coordinates -> RANSAC-PnP, then refinement."""
 
-    backend: str = "opencv"  # RANSAC-PnP solver: opencv | pycolmap (the default chosen by benchmarks/pnp_solvers.py)
+    backend: str = "opencv"  # RANSAC-PnP solver of the learned pose: opencv | pycolmap | poselib (the default chosen by benchmarks/pnp_solvers.py)
     max_error_px: float = 10.0  # RANSAC inlier threshold in px of a 480 px short side (ACE's), scaled to the map's working short side
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)
@@ -55,6 +56,7 @@ class RelocalizeOptions:
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
+    features_pnp: str = "poselib"  # LO-RANSAC PnP of the guided and global passes: poselib (PoseLib's: about half COLMAP's time on their nearly all-inlier matches, the same figures on mini and office, bird's within a query: docs/results.md) | pycolmap (COLMAP's); SIFT + PnP's own evidence keeps COLMAP's, as the baseline registers a query
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
     features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 20-64 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
@@ -62,7 +64,7 @@ class RelocalizeOptions:
     def problems(self) -> list[str]:
         out = one_of(self, "backend", BACKENDS) + one_of(self, "precision", PRECISIONS)
         out += one_of(self, "refine", REFINE) + one_of(self, "prior", PRIORS) + one_of(self, "features_extractor", EXTRACTORS)
-        out += one_of(self, "features_final", FINAL)
+        out += one_of(self, "features_final", FINAL) + one_of(self, "features_pnp", FEATURE_PNP)
         out += positive(self, "max_error_px", "min_inliers") + refine_problems(self, "refine_")
         out += positive(self, "features_max_keypoints", "features_max_error_px", "features_view_margin_deg")
         for name in ("max_error_px", "features_max_error_px"):

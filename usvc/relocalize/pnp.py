@@ -1,14 +1,16 @@
 """RANSAC-PnP from dense 2D–3D correspondences (scene coordinate predictions).
 
-Two interchangeable backends so their accuracy and speed can be compared on the same inputs:
-"pycolmap" (COLMAP's LO-RANSAC with P3P, then non-linear refinement) and "opencv"
-(USAC with P3P, then Levenberg–Marquardt on the inliers, re-selecting inliers until the set stops
-growing, as ACE does). Both take pixel coordinates in COLMAP's convention (top-left pixel centre
-at (0.5, 0.5)) and return world-to-camera (R, t) in OpenCV axes.
+Interchangeable backends so their accuracy and speed can be compared on the same inputs:
+"pycolmap" (COLMAP's LO-RANSAC with P3P, then non-linear refinement), "poselib" (PoseLib's
+LO-RANSAC with P3P and its own Levenberg–Marquardt refinement on the inliers, Cauchy loss of 1 px
+as COLMAP's) and "opencv" (USAC with P3P, then Levenberg–Marquardt on the inliers, re-selecting
+inliers until the set stops growing, as ACE does). All take pixel coordinates in COLMAP's
+convention (top-left pixel centre at (0.5, 0.5)) and return world-to-camera (R, t) in OpenCV axes.
 
 "opencv" is the default: on `benchmarks/pnp_solvers.py` (4800 correspondences at 640x480,
 30-95 % outliers) it was as accurate or slightly more accurate at every outlier ratio and
-2-20x faster than pycolmap's LO-RANSAC.
+2-20x faster than pycolmap's LO-RANSAC. Refinement by features' passes, whose matches are nearly
+all inliers, take "poselib" (`relocalize.features_pnp`): about half COLMAP's time there.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import poselib
 import pycolmap
 
 from usvc.core.absolute_pose import RANSAC_CONFIDENCE, RANSAC_MAX_TRIALS, absolute_pose_options
@@ -163,6 +166,25 @@ def _pycolmap_camera(camera: Camera) -> pycolmap.Camera:
     return pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
 
 
+def _solve_poselib(
+    p2: np.ndarray, p3: np.ndarray, camera: Camera, max_error_px: float, seed: int, min_trials: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """PoseLib's LO-RANSAC (P3P) and refinement, with COLMAP's RANSAC settings (confidence, the most
+    trials, `min_trials` or COLMAP's 100 as the fewest, the seed) and its 1 px Cauchy loss. PoseLib
+    takes every camera model usvc knows by COLMAP's name and parameter order (a test holds its
+    projections to COLMAP's)."""
+    cam = {"model": camera.model, "width": int(camera.width), "height": int(camera.height),
+           "params": [float(v) for v in camera.params]}
+    ransac = {"max_reproj_error": float(max_error_px), "seed": int(seed), "success_prob": RANSAC_CONFIDENCE,
+              "max_iterations": RANSAC_MAX_TRIALS, "min_iterations": int(100 if min_trials is None else min_trials)}
+    pose, info = poselib.estimate_absolute_pose(p2, p3, cam, ransac, {"loss_type": "CAUCHY", "loss_scale": 1.0})
+    inliers = np.asarray(info.get("inliers", []), bool)
+    R, t = np.asarray(pose.R, np.float64), np.asarray(pose.t, np.float64).reshape(3)
+    if len(inliers) != len(p2) or inliers.sum() < 4 or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        return None
+    return R, t, inliers
+
+
 def in_image(camera: Camera, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """(N,) bool: projections (`project_points`) in front of the camera and inside its image."""
     return (depth > 0) & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) \
@@ -243,7 +265,7 @@ def solve_pnp(
 ) -> PnPResult:
     """Robust world-to-camera pose from (N,2) COLMAP-convention pixels and (N,3) world points.
 
-    `min_trials` ("pycolmap" only; None: COLMAP's 100) is the fewest RANSAC trials before its
+    `min_trials` ("pycolmap" and "poselib"; None: COLMAP's 100) is the fewest RANSAC trials before its
     adaptive stop may end the search: the stop itself (confidence RANSAC_CONFIDENCE at the inlier
     ratio found so far) still decides where inliers are few, so a lower floor only shortens the
     search on correspondences that are nearly all inliers.
@@ -261,8 +283,8 @@ def solve_pnp(
         raise UsvcError(f"PnP max_error_px must be positive, got {max_error_px}")
     if seed < 0:
         raise UsvcError(f"PnP seed must be non-negative for reproducible runs, got {seed}")
-    if min_trials is not None and (backend != "pycolmap" or not 1 <= min_trials <= RANSAC_MAX_TRIALS):
-        raise UsvcError(f"PnP min_trials={min_trials!r}: only the pycolmap backend takes it, "
+    if min_trials is not None and (backend == "opencv" or not 1 <= min_trials <= RANSAC_MAX_TRIALS):
+        raise UsvcError(f"PnP min_trials={min_trials!r}: only the pycolmap and poselib backends take it, "
                         f"between 1 and {RANSAC_MAX_TRIALS}")
     finite = np.all(np.isfinite(p2), axis=1) & np.all(np.isfinite(p3), axis=1)
     n_finite = int(finite.sum())
@@ -273,6 +295,9 @@ def solve_pnp(
     if backend == "pycolmap":
         out = _solve_pycolmap(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]), camera,
                               max_error_px, seed, min_trials)
+    elif backend == "poselib":
+        out = _solve_poselib(np.ascontiguousarray(p2[finite]), np.ascontiguousarray(p3[finite]), camera,
+                             max_error_px, seed, min_trials)
     else:
         out = _solve_opencv(p2[finite], p3[finite], camera, max_error_px, seed, min_inliers)
     seconds = time.perf_counter() - start
