@@ -213,3 +213,23 @@ def test_sift_and_pnps_own_evidence_keeps_colmaps_pnp(monkeypatch):
     feats = type("Feats", (), {"uv": uv})()
     out = F.from_verified(Map(), np.zeros((100, 128), np.float32), feats, PINHOLE, Found(), opts)
     assert out.success and out.path == "verified" and seen == ["pycolmap"]
+
+
+@pytest.mark.parametrize("camera", [PINHOLE, Camera("SIMPLE_PINHOLE", 320, 240, (260.0, 161.0, 119.0)), OPENCV,
+                                    Camera("SIMPLE_RADIAL", 640, 480, (500.0, 321.0, 239.0, -0.05))],
+                         ids=["PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL"])
+def test_project_points_is_colmaps_projection(camera):
+    # the pinhole models take numpy's arithmetic, the others OpenCV's projectPoints: both COLMAP's pixels
+    from usvc.relocalize.pnp import project_points
+
+    rng = np.random.default_rng(8)
+    xw = rng.uniform(-2.0, 2.0, (500, 3))
+    uv, depth = project_points(camera, xw, R_TRUE, T_TRUE)
+    x_cam = xw @ R_TRUE.T + T_TRUE
+    np.testing.assert_allclose(depth, x_cam[:, 2], rtol=0, atol=1e-12)
+    front = x_cam[:, 2] > 0.1
+    colmap = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    expected = np.asarray(colmap.img_from_cam(x_cam[front]), np.float64)
+    tolerance = 1e-9 if camera.model.endswith("PINHOLE") else 1e-5  # OpenCV's distortion polynomial rounds differently far out
+    np.testing.assert_allclose(uv[front], expected, rtol=0, atol=tolerance)
+    assert project_points(camera, np.zeros((0, 3)), R_TRUE, T_TRUE)[0].shape == (0, 2)

