@@ -266,6 +266,28 @@ def test_any_map_runs_at_either_precision(tiny_map: tuple[Path, Path]) -> None:
     assert Relocalizer(*tiny_map).precision in ("fp32", "bf16")
 
 
+def test_bf16_on_a_cpu_runs_the_network_channels_last(tiny_map: tuple[Path, Path]) -> None:
+    """bf16 on a CPU takes the channels-last layout (oneDNN's faster one there), fp32 the default:
+    the layout changes the order of the sums only, so the coordinates stay within bf16's rounding
+    of the default layout's at the same precision."""
+    import torch
+
+    gray = np.random.default_rng(2).random((120, 160)).astype(np.float32)
+    fp32 = Relocalizer(*tiny_map, options=RelocalizeOptions(precision="fp32"))
+    assert fp32.memory_format == torch.contiguous_format
+    bf16 = Relocalizer(*tiny_map, options=RelocalizeOptions(precision="bf16"))
+    assert bf16.memory_format == torch.channels_last
+    first = next(p for p in bf16.regressor.parameters() if p.dim() == 4 and p.shape[1] > 1 and p.shape[2] > 1)
+    assert first.is_contiguous(memory_format=torch.channels_last) and not first.is_contiguous()
+    last = bf16.scene_coordinates(gray)
+    bf16.memory_format = torch.contiguous_format
+    bf16.regressor.to(memory_format=torch.contiguous_format)
+    plain = bf16.scene_coordinates(gray)
+    scale = np.abs(plain).max()
+    assert np.abs(last - plain).max() < 0.02 * scale
+    assert np.abs(last - fp32.scene_coordinates(gray)).max() < 0.05 * scale
+
+
 def test_input_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     reloc = Relocalizer(*tiny_map)
     with pytest.raises(UsvcError, match="principal point .* outside the 160x120 image"):
