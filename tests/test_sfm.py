@@ -185,8 +185,9 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
 @pytest.mark.slow
 def test_sift_pnp_baseline_on_a_given_model_lifts_to_its_points(small_mini, tmp_path):
     """`model=`: the queries registered against a given model (the sfm stage's own) give the poses of
-    the same model triangulated by the baseline itself (the same inliers; the correspondences in
-    another order, so RANSAC's draws differ: poses within 0.001° and 1e-4 scene units); a model
+    the same model triangulated by the baseline itself (the correspondences in another order, so
+    RANSAC's draws differ, and with them a point or two at the inlier threshold's edge: inlier
+    counts within 0.5 %, poses within 0.001° and 1e-4 scene units); a model
     whose images carry other keypoints than the scene's SIFT finds (here: SIFT with an eighth of the
     keypoints) is refused, naming an image."""
     from dataclasses import replace
@@ -204,7 +205,8 @@ def test_sift_pnp_baseline_on_a_given_model_lifts_to_its_points(small_mini, tmp_
     given, _ = sift_pnp_baseline(scene, small_mini / IMAGE_DIR, tmp_path / "given", OPTS, seeds=[0], threads=-1,
                                  model=model)
     for name, p in own[0].items():
-        assert given[0][name].why == p.why == "" and given[0][name].inliers == p.inliers, name
+        assert given[0][name].why == p.why == "", name
+        assert abs(given[0][name].inliers - p.inliers) <= max(2, 0.005 * p.inliers), name
         assert rotation_error_deg(given[0][name].R, p.R) < 1e-3, name
         assert translation_error(given[0][name].R, given[0][name].t, p.R, p.t) < 1e-4, name
     (tmp_path / "fewer").mkdir()
