@@ -44,13 +44,13 @@ class RelocalizeOptions:
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)
     focal_tolerance: float = 0.25  # given focal length vs the one the map implies: a larger relative gap fails; 0 = no check
-    prior: str = "learned"  # refine=features: learned: the learned pose guides matching first, SIFT + PnP's evidence when it leads nowhere | none: no learned pose, SIFT + PnP's evidence alone (the baseline's answer, tightened by guided passes)
+    prior: str = "learned"  # refine=features: learned: the learned pose guides matching first, SIFT + PnP's evidence when it leads nowhere | none: no learned pose, SIFT + PnP's registration alone (its SIFT, per-image matches, tracks and PnP: the baseline's answer)
     refine: str = "features"  # features: the query's SIFT matched to the map's landmarks, guided by the learned pose | keypoints: the paper's keypoint-guided refinement (3.2.2) | none; the method group sets it
     refine_radius_px: float = 8.0  # cells within this radius (working-image px) of a projected keypoint form the mask
     refine_max_iterations: int = 5  # T_max
     refine_delta: float = 1e-3  # stop when |dR|_F + |dt| / median scene depth < delta
     refine_min_correspondences: int = 20  # fewer masked cells than this: keep the current pose
-    features_extractor: str = "auto"  # query SIFT: auto (COLMAP's on the relocalizer's GPU where pycolmap has CUDA, else opencv) | opencv (on the CPU, with COLMAP's detector settings: COLMAP's keypoints, most of them, about 4x faster there) | colmap (the landmarks' own extractor; on the GPU where pycolmap has CUDA)
+    features_extractor: str = "auto"  # query SIFT: auto (COLMAP's on the relocalizer's GPU where pycolmap has CUDA, and with prior=none; else opencv) | opencv (on the CPU, with COLMAP's detector settings: COLMAP's keypoints, most of them, about 4x faster there) | colmap (the landmarks' own extractor, on the grey COLMAP's reader makes; on the GPU where pycolmap has CUDA)
     features_max_keypoints: int = 4096  # refine=features: SIFT keypoints of the query (at the mapping images' short side)
     features_radii_px: list[float] = field(default_factory=lambda: [96.0, 24.0, 8.0])  # search radius of each guided pass, px at a 480 px short side
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest

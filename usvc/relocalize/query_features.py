@@ -7,7 +7,11 @@ so it finds most of COLMAP's keypoints (88-90 % as many on the measured scenes) 
 positions, and its descriptors are made L1-root ("RootSIFT") as COLMAP normalises its own; both use
 Lowe's descriptor layout, so they match the same landmarks (docs/results.md measures both).
 `relocalize.features_extractor: auto` (the default) takes COLMAP's on the GPU where the relocalizer
-runs on one that pycolmap can use, else OpenCV's: on a CPU the same features as `opencv`.
+runs on one that pycolmap can use, else OpenCV's: on a CPU the same features as `opencv`; with
+`relocalize.prior=none` (SIFT + PnP's registration) it takes COLMAP's everywhere. Each extractor
+sees the grey its mapping-side twin saw: COLMAP's the grey COLMAP's image reader makes
+(`usvc.core.sift_grey`: the sfm stage's SIFT reads the photos through it), OpenCV's the luma
+(as `sfm.extractor=opencv` converts the photos).
 Keypoints use COLMAP's pixel convention (the top-left pixel's centre at (0.5, 0.5)), like every 2D
 point in usvc.
 """
@@ -71,12 +75,16 @@ def pycolmap_has_cuda() -> bool:
     return bool(getattr(pycolmap, "has_cuda", False))
 
 
-def choose_sift(setting: str, device: str) -> SiftChoice:
+def choose_sift(setting: str, device: str, prior: str = "learned") -> SiftChoice:
     """The query SIFT for `relocalize.features_extractor` = `setting` on a relocalizer whose torch
     device is `device` (resolved: cpu, cuda or cuda:N). COLMAP's runs on that GPU where pycolmap can
-    use CUDA; `auto` is then COLMAP's on the GPU, and OpenCV's on the CPU everywhere else."""
+    use CUDA; `auto` is then COLMAP's on the GPU, and OpenCV's on the CPU everywhere else, except
+    with `relocalize.prior` = `prior` none: that is SIFT + PnP's registration, so `auto` takes its
+    own SIFT, COLMAP's, everywhere."""
     if setting not in EXTRACTORS:
         raise ValueError(f"features_extractor={setting!r} is not one of {list(EXTRACTORS)}")
+    if setting == "auto" and prior == "none":
+        setting = "colmap"
     gpu = None
     if device.startswith("cuda") and setting != "opencv":
         if not pycolmap_has_cuda():

@@ -23,6 +23,7 @@ from usvc.core.images import Photo, read_photo
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Camera
+from usvc.core.sift_grey import colmap_grey
 from usvc.core.undistort import undistort
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
@@ -109,7 +110,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         self.memory_format = torch.channels_last if self.precision == "bf16" and torch.device(device).type == "cpu" \
             else torch.contiguous_format
         self.regressor.to(memory_format=self.memory_format)
-        self.sift = choose_sift(self.options.features_extractor, device)  # the query's SIFT, and where it runs
+        self.sift = choose_sift(self.options.features_extractor, device, self.options.prior)  # the query's SIFT, and where it runs
         if "short_side" not in self.metadata:
             raise UsvcError(f"map file {map_path} has no metadata field 'short_side' (the image size its head "
                             "was trained at): not a map the train stage wrote")
@@ -240,7 +241,11 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                 return self._localize_reduced(photo, intrinsics, intrinsics_source)
             image, channels = photo.bgr, "bgr"
         t0 = time.perf_counter()
-        gray = as_gray(image, channels)
+        gray = as_gray(image, channels)  # the network's luma (checks the array too)
+        # COLMAP's SIFT on the grey COLMAP's reader makes, as the sfm stage extracted the mapping photos
+        # (`sift_grey`); OpenCV's on the luma, as `sfm.extractor=opencv` extracts them
+        sift_gray = colmap_grey(np.asarray(image), rgb=channels == "rgb").astype(np.float32) / 255.0 \
+            if self.landmarks is not None and self.sift.kind == "colmap" else gray
         h, w = gray.shape
         if min(h, w) < MIN_IMAGE_SIDE:
             raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
@@ -265,8 +270,10 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                                 rejected=early, warnings=warnings, pose_found=False)
         camera = None
         if given is not None:
+            if sift_gray is not gray:
+                sift_gray = undistort(sift_gray, given, CAMERA_FOV, where="query image")[0]
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
-        full_gray, full_camera = gray, camera  # undistorted, at the photo's size: what features see
+        full_gray, full_camera = sift_gray, camera  # undistorted, at the photo's size: what features see
         job = None  # the photo's features, found on a second thread while the network runs
         if self.landmarks is not None:
             job = feature_job(full_gray, self.landmarks.image_short_side, self.options.features_max_keypoints,
