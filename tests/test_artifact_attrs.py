@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from usvc.landmarks.landmark_table import Landmarks
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, MappingKeypoints
 from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.buffer.buffer_file import TrainingBuffer, write_buffer
 from usvc.core.scene import Camera, Frame, Scene
@@ -50,6 +50,9 @@ def _tracks() -> Tracks:
         obs_uv=rng.uniform(0, 6, size=(n_obs, 2)).astype(np.float32),
         obs_descriptor=rng.integers(0, 255, size=(n_obs, 128), dtype=np.uint8),
         obs_error=np.full(n_obs, 0.5, np.float32),
+        kp_image=np.array([0, 0, 0, 0, 1, 1, 1], np.int32), kp_uv=rng.uniform(0, 6, size=(7, 2)).astype(np.float32),
+        kp_descriptor=rng.integers(0, 255, size=(7, 128), dtype=np.uint8),
+        kp_point=np.array([0, -1, 1, 2, 0, 1, 2], np.int64),
     )
 
 
@@ -98,8 +101,17 @@ def _queries_h5(d: Path) -> Path:
 
 
 def _landmarks_h5(d: Path) -> Path:
+    obs = LandmarkObservations(landmark=np.array([0, 1, 2, 3, 0, 1, 2, 3], np.int32),
+                               image=np.array([0, 0, 0, 0, 1, 1, 1, 1], np.int32),
+                               uv=np.full((8, 2), 2.5, np.float32), descriptor=np.zeros((8, 128), np.uint8),
+                               image_names=["train/a.png", "train/c.png"], image_K=np.stack([CAM.K, CAM.K]),
+                               image_size=np.array([[8, 6], [8, 6]], np.int32),
+                               keypoints=MappingKeypoints(image=np.array([0, 0, 1], np.int32),
+                                                          uv=np.full((3, 2), 1.5, np.float32),
+                                                          descriptor=np.zeros((3, 128), np.uint8),
+                                                          landmark=np.array([0, -1, 3], np.int32)))
     lm = Landmarks("scene", np.zeros((4, 3)), np.zeros((4, 128), np.uint8), np.tile([0, 0, 1.0], (4, 1)).astype(np.float32),
-                   np.full(4, 5.0, np.float32), np.full(4, 2, np.int32), 6)
+                   np.full(4, 5.0, np.float32), np.full(4, 2, np.int32), 6, obs)
     write_landmarks(d / "landmarks.h5", lm)
     return d / "landmarks.h5"
 

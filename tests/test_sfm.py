@@ -80,6 +80,15 @@ def test_office_imported_poses_reproject_under_one_pixel(tmp_path):
     write_tracks(tmp_path / "tracks.h5", tracks)
     again = read_tracks(tmp_path / "tracks.h5")
     np.testing.assert_array_equal(again.obs_descriptor, tracks.obs_descriptor)
+    np.testing.assert_array_equal(again.kp_descriptor, tracks.kp_descriptor)
+    # every keypoint of the images; those that observe a point are its observations in that image
+    observed = tracks.kp_point >= 0
+    assert len(tracks.kp_image) > len(tracks.obs_image) == int(observed.sum())
+    kp_order = np.lexsort((tracks.kp_point[observed], tracks.kp_image[observed]))
+    point = tracks.point_of_obs()
+    obs_order = np.lexsort((point, tracks.obs_image))
+    np.testing.assert_array_equal(tracks.kp_uv[observed][kp_order], tracks.obs_uv[obs_order])
+    np.testing.assert_array_equal(tracks.kp_descriptor[observed][kp_order], tracks.obs_descriptor[obs_order])
     # the stored observations are the projections of the stored points (world-to-camera, K)
     k = again.point_of_obs()
     cam = np.einsum("nij,nj->ni", again.R[again.obs_image], again.xyz[k]) + again.t[again.obs_image]

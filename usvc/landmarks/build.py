@@ -8,7 +8,13 @@ import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
-from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, encode_descriptors, unit_descriptors
+from usvc.landmarks.landmark_table import (
+    LandmarkObservations,
+    Landmarks,
+    MappingKeypoints,
+    encode_descriptors,
+    unit_descriptors,
+)
 from usvc.landmarks.options import LandmarksOptions
 from usvc.sfm.tracks_file import Tracks
 
@@ -65,7 +71,20 @@ def landmark_observations(tracks: Tracks, keep: np.ndarray, image_sizes: np.ndar
                                 uv=np.asarray(tracks.obs_uv, np.float32)[sel],
                                 descriptor=np.asarray(tracks.obs_descriptor, np.uint8)[sel],
                                 image_names=list(tracks.image_names), image_K=np.asarray(tracks.K, np.float64),
-                                image_size=np.asarray(image_sizes, np.int32).reshape(-1, 2))
+                                image_size=np.asarray(image_sizes, np.int32).reshape(-1, 2),
+                                keypoints=mapping_keypoints(tracks, row_of_point))
+
+
+def mapping_keypoints(tracks: Tracks, row_of_point: np.ndarray) -> MappingKeypoints | None:
+    """Every keypoint of tracks' images (None for tracks without them), each naming the landmark
+    row of its point (`row_of_point`, -1 for points left out) or -1."""
+    if tracks.kp_image is None or tracks.kp_uv is None or tracks.kp_descriptor is None or tracks.kp_point is None:
+        return None
+    point = np.asarray(tracks.kp_point, np.int64)
+    landmark = np.where(point >= 0, row_of_point[np.maximum(point, 0)], -1)
+    return MappingKeypoints(image=np.asarray(tracks.kp_image, np.int32), uv=np.asarray(tracks.kp_uv, np.float32),
+                            descriptor=np.asarray(tracks.kp_descriptor, np.uint8).reshape(-1, 128),
+                            landmark=landmark.astype(np.int32))
 
 
 def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: LandmarksOptions,
@@ -99,4 +118,6 @@ def landmark_stats(landmarks: Landmarks, tracks: Tracks) -> dict:
             "mean_track_length": float(landmarks.track_length.mean()),
             "median_view_angle_deg": float(np.median(landmarks.view_angle_deg)),
             "image_short_side": landmarks.image_short_side,
-            "observations": 0 if landmarks.observations is None else len(landmarks.observations.landmark)}
+            "observations": 0 if landmarks.observations is None else len(landmarks.observations.landmark),
+            "mapping_keypoints": 0 if landmarks.observations is None or landmarks.observations.keypoints is None
+            else len(landmarks.observations.keypoints.image)}

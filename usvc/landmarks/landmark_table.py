@@ -11,7 +11,9 @@ Each landmark also keeps its track: every mapping image that observed it, with t
 keypoint and descriptor, and the mapping images' cameras (`LandmarkObservations`). They are the
 evidence SIFT + PnP uses (the query's keypoints matched to each mapping image's keypoints, the
 matches verified per pair, lifted to the points through the tracks): the relocalizer falls back
-on them when the learned pose does not lead to the photo's features.
+on them when the learned pose does not lead to the photo's features. With them come every keypoint
+of the mapping images (`MappingKeypoints`), those that observe no point too: SIFT + PnP's ratio and
+mutual tests compare a query's keypoint with all of a mapping photo's.
 
 Descriptors are COLMAP's SIFT (L1-root normalised) in its uint8 encoding (512 x value, clipped
 at 255); `unit_descriptors` turns them into unit vectors for matching.
@@ -29,6 +31,47 @@ DESCRIPTOR_SCALE = 512.0  # COLMAP's uint8 SIFT encoding
 
 
 @dataclass
+class MappingKeypoints:
+    """Every SIFT keypoint of the mapping images, those that observe no point included, grouped by
+    image: what SIFT + PnP matches a query against (its ratio and mutual tests see every keypoint
+    of a mapping photo; the matches of those with a point are then lifted through it)."""
+
+    image: np.ndarray  # (K,) int32 row of LandmarkObservations.image_names
+    uv: np.ndarray  # (K,2) float32 keypoint, COLMAP pixel convention
+    descriptor: np.ndarray  # (K,128) uint8 SIFT descriptor (COLMAP's encoding)
+    landmark: np.ndarray  # (K,) int32 row of the landmark the keypoint observes, -1 for none
+
+    def problems(self, n_landmarks: int, n_images: int) -> list[str]:
+        k = len(self.image)
+        shapes = {"keypoint landmark": (self.landmark.shape, (k,)), "keypoint uv": (self.uv.shape, (k, 2)),
+                  "keypoint descriptor": (self.descriptor.shape, (k, 128))}
+        out = [f"{name} {got}, expected {want}" for name, (got, want) in shapes.items() if got != want]
+        if out:
+            return out
+        if k and (self.landmark.min() < -1 or self.landmark.max() >= n_landmarks):
+            out.append(f"a keypoint names a landmark outside -1..{n_landmarks - 1}")
+        if k and (self.image.min() < 0 or self.image.max() >= n_images):
+            out.append(f"a keypoint names an image outside 0..{n_images - 1}")
+        if k > 1 and np.any(np.diff(self.image) < 0):
+            out.append("keypoints are not grouped by image")
+        if not np.isfinite(self.uv).all():
+            out.append("keypoints are not finite")
+        return out
+
+    def image_slices(self) -> list[tuple[int, int, int]]:
+        """(image row, first keypoint, end) of every image with keypoints, in image order."""
+        return _slices(self.image)
+
+
+def _slices(image: np.ndarray) -> list[tuple[int, int, int]]:
+    if len(image) == 0:
+        return []
+    starts = np.flatnonzero(np.r_[True, image[1:] != image[:-1]])
+    ends = np.r_[starts[1:], len(image)]
+    return [(int(image[a]), int(a), int(b)) for a, b in zip(starts, ends)]
+
+
+@dataclass
 class LandmarkObservations:
     """Every observation of the landmarks in the mapping images, grouped by image (rows of one image
     are contiguous, images in order), and the mapping images' pinhole cameras."""
@@ -40,6 +83,7 @@ class LandmarkObservations:
     image_names: list[str]  # (M,) mapping image names
     image_K: np.ndarray  # (M,3,3) float64 intrinsics of each mapping image (pinhole, prepared size)
     image_size: np.ndarray  # (M,2) int32 width, height of each mapping image
+    keypoints: MappingKeypoints | None = None  # every keypoint of the images (absent before format version 3)
 
     def problems(self, n_landmarks: int) -> list[str]:
         t, m = len(self.landmark), len(self.image_names)
@@ -57,15 +101,13 @@ class LandmarkObservations:
             out.append("observations are not grouped by image")
         if not (np.isfinite(self.uv).all() and np.isfinite(self.image_K).all()):
             out.append("observations or cameras are not finite")
+        if self.keypoints is not None:
+            out += self.keypoints.problems(n_landmarks, m)
         return out
 
     def image_slices(self) -> list[tuple[int, int, int]]:
         """(image row, first observation, end) of every image with observations, in image order."""
-        if len(self.image) == 0:
-            return []
-        starts = np.flatnonzero(np.r_[True, self.image[1:] != self.image[:-1]])
-        ends = np.r_[starts[1:], len(self.image)]
-        return [(int(self.image[a]), int(a), int(b)) for a, b in zip(starts, ends)]
+        return _slices(self.image)
 
 
 @dataclass

@@ -15,11 +15,12 @@ import numpy as np
 from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
 from usvc.core.h5_file import Field, read_h5, write_h5
-from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, MappingKeypoints
 
-# Version 2 adds the observations (obs/*, images/*); version 1 files are still read, without them.
-LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 2
-READABLE_VERSIONS = (1, 2)
+# Version 2 adds the observations (obs/*, images/*), version 3 every keypoint of the mapping images
+# (keypoints/*); older files are still read, without what they lack.
+LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 3
+READABLE_VERSIONS = (1, 2, 3)
 
 LANDMARKS_SCHEMA: dict[str, Field] = {
     "xyz": Field("scene units", "position of the landmark: the triangulated SfM point (as in sfm/tracks.h5)", "world"),
@@ -36,6 +37,12 @@ LANDMARKS_SCHEMA: dict[str, Field] = {
     "images/name": Field("1", "mapping image name, relative to prepared/images"),
     "images/K": Field("px", "intrinsic matrix of the prepared (pinhole) mapping image", "camera->image"),
     "images/size": Field("px", "width, height of the prepared mapping image"),
+    "keypoints/image": Field("1", "mapping image of the keypoint: row of images/*; every SIFT keypoint of the "
+                                  "mapping images, those that observe no landmark too, grouped by image"),
+    "keypoints/uv": Field("px", "SIFT keypoint position; pixel centres at integer+0.5 (COLMAP), x right, y down",
+                          "image"),
+    "keypoints/descriptor": Field("1", "the keypoint's SIFT descriptor (COLMAP's, uint8 encoding)"),
+    "keypoints/landmark": Field("1", "row of the landmark the keypoint observes, -1 for none"),
 }
 
 
@@ -54,6 +61,10 @@ def write_landmarks(path: Path, landmarks: Landmarks) -> None:
             h5.create_dataset("images/name", data=np.array(obs.image_names, dtype=object),
                               dtype=h5py.string_dtype())
             h5["images/K"], h5["images/size"] = obs.image_K, obs.image_size
+            kp = obs.keypoints
+            if kp is not None:
+                h5["keypoints/image"], h5["keypoints/uv"], h5["keypoints/landmark"] = kp.image, kp.uv, kp.landmark
+                h5.create_dataset("keypoints/descriptor", data=kp.descriptor, compression="gzip")
 
 
 def _observations(h5: h5py.File) -> LandmarkObservations | None:
@@ -65,7 +76,16 @@ def _observations(h5: h5py.File) -> LandmarkObservations | None:
                                 uv=np.asarray(h5["obs/uv"][()], np.float32).reshape(-1, 2),
                                 descriptor=np.asarray(h5["obs/descriptor"][()], np.uint8).reshape(-1, 128),
                                 image_names=names, image_K=np.asarray(h5["images/K"][()], np.float64),
-                                image_size=np.asarray(h5["images/size"][()], np.int32))
+                                image_size=np.asarray(h5["images/size"][()], np.int32), keypoints=_keypoints(h5))
+
+
+def _keypoints(h5: h5py.File) -> MappingKeypoints | None:
+    if "keypoints" not in h5:
+        return None
+    return MappingKeypoints(image=np.asarray(h5["keypoints/image"][()], np.int32),
+                            uv=np.asarray(h5["keypoints/uv"][()], np.float32).reshape(-1, 2),
+                            descriptor=np.asarray(h5["keypoints/descriptor"][()], np.uint8).reshape(-1, 128),
+                            landmark=np.asarray(h5["keypoints/landmark"][()], np.int32))
 
 
 def read_landmarks(path: Path | str) -> Landmarks:

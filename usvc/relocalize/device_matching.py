@@ -93,3 +93,27 @@ def mutual_reductions(query: np.ndarray, image: np.ndarray,
             s2 = torch.full_like(s1, float("-inf"))
         return (first.cpu().numpy().astype(np.int64), s1.cpu().numpy(), s2.cpu().numpy(),
                 reach.cpu().numpy().astype(np.int64))
+
+
+def two_way_reductions(query: np.ndarray, image: np.ndarray, device: str | torch.device
+                       ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """What COLMAP's cross-checked matching needs of the query x image similarities
+    (`verified_matching.cross_checked_matches`; the uint8 codes as float32: exact integer products),
+    computed on `device`: per query row and per image column, the index of the largest entry (the
+    first on ties), the largest and the second largest (-inf where there is one entry)."""
+    device = torch.device(device)
+    with torch.inference_mode():
+        sim = _tensor(query, device) @ _tensor(image, device).T  # (K, n)
+        return _first_two(sim.clone()), _first_two(sim.T.contiguous())
+
+
+def _first_two(sim: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rows = torch.arange(sim.shape[0], device=sim.device)
+    first = torch.argmax(sim, dim=1)
+    s1 = sim[rows, first]
+    if sim.shape[1] > 1:
+        sim[rows, first] = float("-inf")
+        s2 = sim.max(dim=1).values
+    else:
+        s2 = torch.full_like(s1, float("-inf"))
+    return first.cpu().numpy().astype(np.int64), s1.cpu().numpy(), s2.cpu().numpy()

@@ -22,6 +22,7 @@ from usvc.relocalize.last_pass import last_pass
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_evidence import QueryEvidence
 from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.verified_matching import HeldKeypointDescriptors
 
 
 class FeatureAnswers:
@@ -35,6 +36,7 @@ class FeatureAnswers:
     _landmark_desc: np.ndarray
     _landmark_bytes: ByteRows
     _observation_desc: list[ByteRows] | None
+    _keypoint_desc: HeldKeypointDescriptors
 
     def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
                   camera: Camera, dense, check_focal: bool,
@@ -59,7 +61,7 @@ class FeatureAnswers:
                                torch.get_num_threads())
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs,
-                                 landmark_bytes=self._landmark_bytes)
+                                 landmark_bytes=self._landmark_bytes, keypoint_desc=self._keypoint_desc)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is

@@ -17,7 +17,7 @@ from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
 from usvc.relocalize.pnp import reprojection_inliers
 from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import VerifiedMatches, verified_matches
+from usvc.relocalize.verified_matching import HeldKeypointDescriptors, VerifiedMatches, verified_matches
 
 
 class QueryEvidence:
@@ -30,8 +30,10 @@ class QueryEvidence:
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,
                  use_global: bool = True,
                  global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                 landmark_bytes: ByteRows | None = None) -> None:
+                 landmark_bytes: ByteRows | None = None,
+                 keypoint_desc: HeldKeypointDescriptors | None = None) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
+        self.keypoint_desc = keypoint_desc  # the mapping keypoints' descriptors, held once per map
         self.landmark_bytes = landmark_bytes  # the landmarks' bytes for the global matches' int8 products
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
@@ -76,7 +78,8 @@ class QueryEvidence:
             return None
         if self._verified is None:
             self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
-                                              self.observation_desc, self.opts.threads, self.opts.device)
+                                              self.observation_desc, self.opts.threads, self.opts.device,
+                                              self.keypoint_desc.get() if self.keypoint_desc is not None else None)
         return self._verified
 
     def verified_record(self) -> dict | None:

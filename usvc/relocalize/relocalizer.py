@@ -57,7 +57,7 @@ from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrins
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.query_cores import for_network, query_split
 from usvc.relocalize.refinement import RefineOptions, refine_pose
-from usvc.relocalize.verified_matching import observation_descriptors
+from usvc.relocalize.verified_matching import HeldKeypointDescriptors, observation_descriptors
 from usvc.weights import WEIGHTS_DIR, load_configured_encoder
 
 log = logging.getLogger(__name__)
@@ -164,6 +164,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         self._landmark_bytes = ByteRows.of(found.descriptor)
         self._observation_desc = observation_descriptors(found.observations) if found.observations is not None \
             else None
+        self._keypoint_desc = HeldKeypointDescriptors(found.observations)  # SIFT + PnP's matching reads them
         if not self.prior and found.observations is None:
             raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
                             "(format version 1): rebuild them with the landmarks stage")

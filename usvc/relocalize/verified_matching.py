@@ -1,21 +1,25 @@
 """The evidence SIFT + PnP uses, for a query the learned pose does not lead to: the query's SIFT
-keypoints matched to each mapping image's keypoints that carry SfM points, the matches of each
-pair verified by two-view geometry, and the verified matches lifted to the points through the
-tracks (landmarks.h5's observations).
+keypoints matched to each mapping image's keypoints, the matches of each pair verified by two-view
+geometry, and the verified matches of keypoints that observe an SfM point lifted to it through the
+tracks (landmarks.h5's keypoints and observations).
 
 Matching follows COLMAP's SIFT matcher (nearest neighbour by the angle between descriptors, from the
 exact integer dot of their uint8 encoding as COLMAP computes it (`byte_products`), at most
-MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest, mutual), and verification
-is COLMAP's own (`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography
-matrix, whichever explains the pair, at least MIN_PAIR_INLIERS inliers; at most MAX_PAIR_TRIALS
-RANSAC trials), as the sfm stage and `benchmarks/baseline_sift.py` match and verify. A keypoint matched in several mapping images gives
-one correspondence per image, as in the baseline. The correspondences do not depend on the query's
-intrinsics beyond verification, so they also judge a given focal length (P4Pf).
+MAX_DISTANCE, Lowe's ratio MAX_RATIO against the second nearest): against every keypoint of a
+mapping image, cross-checked as COLMAP cross-checks (the ratio test on both sides,
+`cross_checked_matches`), where the landmarks carry every keypoint (format version 3); against its
+observations, mutual, for older landmarks. Verification is COLMAP's own
+(`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography matrix, whichever
+explains the pair, at least MIN_PAIR_INLIERS inliers; at most MAX_PAIR_TRIALS RANSAC trials), as
+the sfm stage and `benchmarks/baseline_sift.py` match and verify. A keypoint matched in several
+mapping images gives one correspondence per image, as in the baseline. The correspondences do not
+depend on the query's intrinsics beyond verification, so they also judge a given focal length (P4Pf).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -29,7 +33,7 @@ from scipy.spatial import cKDTree
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
 from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots
-from usvc.relocalize.device_matching import mutual_reductions
+from usvc.relocalize.device_matching import mutual_reductions, two_way_reductions
 from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_cores import products_on_own_threads
 from usvc.relocalize.query_features import QueryFeatures
@@ -101,6 +105,44 @@ def mutual_ratio_matches(query: ByteRows, image: ByteRows, scratch: ProductBlock
     return _mutual(sim, _ratio_passes(s1, s2), first)
 
 
+def cross_checked_matches(query: ByteRows, image: ByteRows, device: str | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(query rows, image rows) matched as COLMAP's CPU matcher cross-checks two sets of
+    descriptors (`SiftMatchingOptions.cross_check`): the nearest neighbour by angle of each query
+    row among the image's rows and of each image row among the query's, each within MAX_DISTANCE
+    and passing the ratio test on its own side, kept where the two agree. SIFT + PnP matches a
+    query to a mapping photo's every keypoint so; `mutual_ratio_matches` tests the ratio on the
+    query's side alone. The products are the bytes' exact integer dots (`byte_products`), on a torch
+    `device` where given (`device_matching.two_way_reductions`)."""
+    if len(query) == 0 or len(image) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if device is not None:
+        (first, s1, s2), (back, b1, b2) = two_way_reductions(query.values, image.values, device)
+    else:
+        sim = dots(query, image)
+        (back, b1, b2), (first, s1, s2) = _best_two(np.ascontiguousarray(sim.T)), _best_two(sim)
+    q = _ratio_passes(s1, s2)
+    nearest = np.full(len(image), -1, np.int64)
+    ok = _ratio_passes(b1, b2)
+    nearest[ok] = back[ok]
+    q = q[nearest[first[q]] == q]
+    return q, first[q]
+
+
+def _best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's column of its largest entry (the first on ties), the largest and the second
+    largest (MASKED for a single column); overwrites `sim`."""
+    rows = np.arange(len(sim))
+    first = np.argmax(sim, axis=1)
+    s1 = sim[rows, first].copy()
+    if sim.shape[1] > 1:
+        sim[rows, first] = MASKED
+        s2 = sim.max(axis=1)
+    else:
+        s2 = np.full(len(sim), MASKED, sim.dtype)
+    return first, s1, s2
+
+
 def _ratio_passes(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
     """The rows whose nearest column (dot s1; s2 the second, MASKED or -inf where there is none)
     is within MAX_DISTANCE and passes the ratio test, by angle as COLMAP's matcher measures it."""
@@ -152,56 +194,77 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[ByteRows] | None
 
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
                      image_descriptors: list[ByteRows] | None = None, threads: int = 1,
-                     device: str | None = None) -> VerifiedMatches:
+                     device: str | None = None, keypoint_descriptors: list[ByteRows] | None = None
+                     ) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
     `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
-    verification tells an essential from a fundamental matrix). `image_descriptors` are the
-    descriptors of each image's observations (`observation_descriptors`), held once per map.
-    Each image is matched and its pair verified as one task, the tasks on `threads` threads (numpy's
-    products and COLMAP's RANSAC release Python's lock; each pair has its own seeded RANSAC, so the
-    matches are the same bits whatever the count). With a torch `device` (a GPU) the descriptor
-    products run there (`mutual_ratio_matches`)."""
+    verification tells an essential from a fundamental matrix). Landmarks that carry every keypoint
+    of the mapping images (`MappingKeypoints`, format version 3) are matched as SIFT + PnP matches:
+    the query against each image's every keypoint, cross-checked as COLMAP cross-checks
+    (`cross_checked_matches`), each pair verified on all its matches, and the inliers whose keypoint
+    observes a landmark lifted; older landmarks, against each image's observations
+    (`mutual_ratio_matches`). `image_descriptors` / `keypoint_descriptors` are the descriptors of
+    each image's observations (`observation_descriptors`) / keypoints (`keypoint_descriptors`),
+    held once per map. Each image is matched and its pair verified as one task, the tasks on
+    `threads` threads (numpy's products and COLMAP's RANSAC release Python's lock; each pair has
+    its own seeded RANSAC, so the matches are the same bits whatever the count). With a torch
+    `device` (a GPU) the descriptor products run there."""
     t0 = time.perf_counter()
-    obs, slices, descs = _per_image(landmarks, image_descriptors)
+    obs, sites = _matching_sites(landmarks, image_descriptors, keypoint_descriptors)
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.random_seed = int(seed)
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
     query = ByteRows.of(feats.codes)
-    scratch = ProductBlocks(max((b - a for _, a, b in slices), default=0) * len(feats))
+    cross = obs.keypoints is not None
+    scratch = None if cross or device else ProductBlocks(max((len(site[1]) for site in sites), default=0) * len(feats))
 
-    def verify(pair: tuple) -> np.ndarray | None:
-        """The pair's inlier matches (query row, observation row within the image), or None."""
-        image, a, b, qi, mi = pair
-        w, h = obs.image_size[image]
-        geometry = pycolmap.estimate_two_view_geometry(
-            qcam, feats.uv, _pycolmap_camera(obs.image_K[image], w, h), obs.uv[a:b].astype(np.float64),
-            np.stack([qi, mi], axis=1).astype(np.uint32), options)
-        inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
-        return inl if geometry.config in _VALID and len(inl) >= MIN_PAIR_INLIERS else None
-
-    def match_and_verify(image: tuple[tuple[int, int, int], np.ndarray]) -> tuple[tuple, np.ndarray | None] | None:
-        """The pair's matches (image, first observation, query rows, image rows) and their verified
-        inliers; None: fewer than MIN_PAIR_INLIERS matches."""
-        (image_id, a, b), desc = image
-        qi, mi = mutual_ratio_matches(query, desc, None if device else scratch, device)
+    def match_and_verify(site: tuple[int, np.ndarray, np.ndarray, ByteRows]
+                         ) -> tuple[np.ndarray, np.ndarray, bool] | None:
+        """The pair's inliers (query rows, their landmarks) and whether it verified; None: fewer
+        than MIN_PAIR_INLIERS matches at all."""
+        image, uv, landmark, desc = site
+        qi, mi = cross_checked_matches(query, desc, device) if cross else \
+            mutual_ratio_matches(query, desc, scratch, device)
         if len(qi) < MIN_PAIR_INLIERS:
             return None
-        pair = (image_id, a, b, qi, mi)
-        return pair, verify(pair)
+        w, h = obs.image_size[image]
+        geometry = pycolmap.estimate_two_view_geometry(
+            qcam, feats.uv, _pycolmap_camera(obs.image_K[image], w, h), uv.astype(np.float64),
+            np.stack([qi, mi], axis=1).astype(np.uint32), options)
+        inl = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        if geometry.config not in _VALID or len(inl) < MIN_PAIR_INLIERS:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), False
+        lm = landmark[inl[:, 1]].astype(np.int64)
+        lifted = lm >= 0  # a keypoint that observes no landmark verifies the pair, lifts to nothing
+        return inl[lifted, 0], lm[lifted], True
 
     with products_on_own_threads():  # the int8 products' torch calls on this query's threads alone
-        found = [f for f in _in_order(match_and_verify, list(zip(slices, descs)), threads) if f is not None]
-    pairs, inliers = [f[0] for f in found], [f[1] for f in found]
-    keypoint = [inl[:, 0] for inl in inliers if inl is not None]
-    landmark = [obs.landmark[pair[1] + inl[:, 1]].astype(np.int64) for pair, inl in zip(pairs, inliers)
-                if inl is not None]
-    kp = np.concatenate(keypoint) if keypoint else np.zeros(0, np.int64)
-    lm = np.concatenate(landmark) if landmark else np.zeros(0, np.int64)
+        found = [f for f in _in_order(match_and_verify, sites, threads) if f is not None]
+    verified = [f for f in found if f[2]]
+    kp = np.concatenate([k for k, _, _ in verified]) if verified else np.zeros(0, np.int64)
+    lm = np.concatenate([m for _, m, _ in verified]) if verified else np.zeros(0, np.int64)
     uv = feats.uv[kp].reshape(-1, 2)
-    return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(slices), len(pairs), len(keypoint),
+    return VerifiedMatches(uv, landmarks.xyz[lm].reshape(-1, 3), lm, kp, len(sites), len(found), len(verified),
                            time.perf_counter() - t0)
+
+
+def _matching_sites(landmarks: Landmarks, image_descriptors: list[ByteRows] | None,
+                    keypoint_descriptors: list[ByteRows] | None
+                    ) -> tuple[LandmarkObservations, list[tuple[int, np.ndarray, np.ndarray, ByteRows]]]:
+    """The observations, and per mapping image what a query is matched against: (image row, its
+    keypoints' pixels, the landmark each observes (-1: none), their descriptors); every keypoint of
+    the image where the landmarks carry them, else its observations."""
+    obs = landmarks.observations
+    if obs is None:
+        raise ValueError("landmarks without observations (format version 1) cannot be matched image by image")
+    kp = obs.keypoints
+    if kp is not None:
+        descs = keypoint_descriptors if keypoint_descriptors is not None else mapping_descriptors(obs)
+        return obs, [(image, kp.uv[a:b], kp.landmark[a:b], d) for (image, a, b), d in zip(kp.image_slices(), descs)]
+    descs = image_descriptors if image_descriptors is not None else observation_descriptors(obs)
+    return obs, [(image, obs.uv[a:b], obs.landmark[a:b], d) for (image, a, b), d in zip(obs.image_slices(), descs)]
 
 
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
@@ -274,6 +337,31 @@ def _in_order(fn: Callable[[Item], Out], items: list[Item], threads: int) -> lis
         with ThreadPoolExecutor(max_workers=min(int(threads), len(items)), thread_name_prefix="usvc-pairs") as pool:
             return list(pool.map(fn, items))
     return [fn(item) for item in items]
+
+
+class HeldKeypointDescriptors:
+    """A map's `mapping_descriptors`, made when first asked for (only SIFT + PnP's evidence reads
+    them: bird's 88,410 keypoints hold 45 MB as float32) and then held; safe for a relocalizer's
+    photos on several threads."""
+
+    def __init__(self, obs: LandmarkObservations | None) -> None:
+        self._obs, self._lock = obs, threading.Lock()
+        self._held: list[ByteRows] | None = None
+
+    def get(self) -> list[ByteRows] | None:
+        if self._obs is None or self._obs.keypoints is None:
+            return None
+        with self._lock:
+            if self._held is None:
+                self._held = mapping_descriptors(self._obs)
+            return self._held
+
+
+def mapping_descriptors(obs: LandmarkObservations, int8: bool | None = None) -> list[ByteRows] | None:
+    """Each image's every keypoint's descriptors (`MappingKeypoints`), held for the products, in
+    `image_slices` order; None for landmarks without them."""
+    kp = obs.keypoints
+    return None if kp is None else [ByteRows.of(kp.descriptor[a:b], int8) for _, a, b in kp.image_slices()]
 
 
 def observation_descriptors(obs: LandmarkObservations, int8: bool | None = None) -> list[ByteRows]:

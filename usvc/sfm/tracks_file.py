@@ -39,6 +39,11 @@ class Tracks:
     obs_uv: np.ndarray  # (T,2)
     obs_descriptor: np.ndarray  # (T,128) uint8
     obs_error: np.ndarray  # (T,) reprojection error of this observation, px
+    # every SIFT keypoint of the images, grouped by image (absent in files before version 2)
+    kp_image: np.ndarray | None = None  # (K,) index into image_names
+    kp_uv: np.ndarray | None = None  # (K,2) float32
+    kp_descriptor: np.ndarray | None = None  # (K,128) uint8
+    kp_point: np.ndarray | None = None  # (K,) int64 row of the point the keypoint observes, -1 for none
 
     @property
     def track_length(self) -> np.ndarray:
@@ -89,6 +94,7 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
     rgb = np.stack([rec.points3D[int(p)].color for p in pids]).astype(np.uint8)
     err = np.array([rec.points3D[int(p)].error for p in pids], dtype=np.float32)
     rows, imgs, uvs, descs, errs = [], [], [], [], []
+    kp_img, kp_uv, kp_desc, kp_point = [], [], [], []
     R, t, K, names = [], [], [], []
     db = pycolmap.Database.open(db_path)
     try:
@@ -100,17 +106,29 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
             t.append(np.asarray(pose.translation))
             K.append(image.camera.calibration_matrix())
             idx = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
+            every = db.read_descriptors(iid).data
+            keypoints = db.read_keypoints(iid)[:, :2]
+            if len(keypoints) != image.num_points2D():
+                raise SfmError(f"image {image.name!r}: {len(keypoints)} keypoints in the database, "
+                               f"{image.num_points2D()} in the model")
+            kp_img.append(np.full(len(keypoints), id_to_index[iid], dtype=np.int32))
+            kp_uv.append(np.asarray(keypoints, np.float32))
+            kp_desc.append(np.asarray(every, np.uint8).reshape(-1, 128))
+            point_of = np.full(len(keypoints), -1, dtype=np.int64)
             if len(idx) == 0:
+                kp_point.append(point_of)
                 continue
             pts = image.get_observation_points2D()
             uv = np.array([p.xy for p in pts])
             row = np.array([pid_to_row[p.point3D_id] for p in pts])
+            point_of[idx] = row
+            kp_point.append(point_of)
             cam_pts = (R[-1] @ xyz[row].T).T + t[-1]
             proj = image.camera.img_from_cam(cam_pts, check_cheirality=False)
             rows.append(row)
             imgs.append(np.full(len(idx), id_to_index[iid], dtype=np.int32))
             uvs.append(uv)
-            descs.append(db.read_descriptors(iid).data[idx])
+            descs.append(every[idx])
             errs.append(np.linalg.norm(proj - uv, axis=1))
     finally:
         db.close()
@@ -124,10 +142,13 @@ def from_reconstruction(rec: pycolmap.Reconstruction, db_path: Path) -> Tracks:
         obs_image=np.concatenate(imgs)[order], obs_uv=np.concatenate(uvs)[order].astype(np.float32),
         obs_descriptor=np.concatenate(descs)[order].astype(np.uint8),
         obs_error=np.concatenate(errs)[order].astype(np.float32),
+        kp_image=np.concatenate(kp_img), kp_uv=np.concatenate(kp_uv).reshape(-1, 2),
+        kp_descriptor=np.concatenate(kp_desc).reshape(-1, 128), kp_point=np.concatenate(kp_point),
     )
 
 
-TRACKS_FORMAT, TRACKS_VERSION = "usvc-tracks", 1
+# Version 2 adds every keypoint of the images (keypoints/*); version 1 files are still read, without them.
+TRACKS_FORMAT, TRACKS_VERSION = "usvc-tracks", 2
 MEDIAN_DEPTH_ATTR = "median_depth"  # file attribute: median_scene_depth of the tracks
 PIXELS = "pixel centres at integer+0.5 (COLMAP), x right, y down"
 
@@ -157,6 +178,11 @@ TRACKS_SCHEMA: dict[str, Field] = {
     "obs/error": Field("px", "reprojection error of this observation: distance from the projection of "
                              "points/xyz to obs/uv"),
     "obs/descriptor": Field("1", "SIFT descriptor of the observation (COLMAP's, uint8, 128 values)"),
+    "keypoints/image": Field("1", "image of the keypoint: row of images/*; every SIFT keypoint of the images, "
+                                  "grouped by image in the database's order"),
+    "keypoints/uv": Field("px", f"SIFT keypoint position; {PIXELS}", "image"),
+    "keypoints/descriptor": Field("1", "SIFT descriptor of the keypoint (COLMAP's, uint8, 128 values)"),
+    "keypoints/point": Field("1", "row of points/* the keypoint observes, -1 for none"),
 }
 
 
@@ -185,6 +211,10 @@ def write_tracks(path: Path, tracks: Tracks) -> None:
         obs = h5.create_group("obs")
         obs["image"], obs["uv"], obs["error"] = tracks.obs_image, tracks.obs_uv, tracks.obs_error
         obs.create_dataset("descriptor", data=tracks.obs_descriptor, compression="gzip")
+        if tracks.kp_image is not None:
+            kp = h5.create_group("keypoints")
+            kp["image"], kp["uv"], kp["point"] = tracks.kp_image, tracks.kp_uv, tracks.kp_point
+            kp.create_dataset("descriptor", data=tracks.kp_descriptor, compression="gzip")
 
 
 def read_tracks(path: Path) -> Tracks:
@@ -199,6 +229,9 @@ def read_tracks(path: Path) -> Tracks:
             rgb=h5["points/rgb"][()], error=h5["points/error"][()], offset=h5["points/track_offset"][()],
             obs_image=h5["obs/image"][()], obs_uv=h5["obs/uv"][()],
             obs_descriptor=h5["obs/descriptor"][()], obs_error=h5["obs/error"][()],
+            **({"kp_image": h5["keypoints/image"][()], "kp_uv": h5["keypoints/uv"][()],
+                "kp_descriptor": h5["keypoints/descriptor"][()], "kp_point": h5["keypoints/point"][()]}
+               if "keypoints" in h5 else {}),
         )
 
 
