@@ -61,7 +61,8 @@ class FeatureAnswers:
                                torch.get_num_threads())
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs,
-                                 landmark_bytes=self._landmark_bytes, keypoint_desc=self._keypoint_desc)
+                                 landmark_bytes=self._landmark_bytes, keypoint_desc=self._keypoint_desc,
+                                 focal_known=check_focal)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is

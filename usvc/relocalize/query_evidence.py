@@ -31,9 +31,10 @@ class QueryEvidence:
                  use_global: bool = True,
                  global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
                  landmark_bytes: ByteRows | None = None,
-                 keypoint_desc: HeldKeypointDescriptors | None = None) -> None:
+                 keypoint_desc: HeldKeypointDescriptors | None = None, focal_known: bool = True) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
         self.keypoint_desc = keypoint_desc  # the mapping keypoints' descriptors, held once per map
+        self.focal_known = focal_known  # the photo's focal length was given (SIFT + PnP's pairs then verify calibrated)
         self.landmark_bytes = landmark_bytes  # the landmarks' bytes for the global matches' int8 products
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
         self.use_global = use_global or landmarks.observations is None
@@ -79,7 +80,8 @@ class QueryEvidence:
         if self._verified is None:
             self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
                                               self.observation_desc, self.opts.threads, self.opts.device,
-                                              self.keypoint_desc.get() if self.keypoint_desc is not None else None)
+                                              self.keypoint_desc.get() if self.keypoint_desc is not None else None,
+                                              self.focal_known)
         return self._verified
 
     def verified_record(self) -> dict | None:

@@ -178,8 +178,13 @@ def _mutual(sim: np.ndarray, q: np.ndarray, first: np.ndarray) -> tuple[np.ndarr
 
 
 def _pycolmap_camera(K: np.ndarray, width: int, height: int) -> pycolmap.Camera:
-    return pycolmap.Camera(model="PINHOLE", width=int(width), height=int(height),
-                           params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+    """A mapping image's camera for COLMAP's two-view geometry: calibrated (its focal length is a
+    prior, as the sfm stage registers posed photos), so the pair is verified by an essential
+    matrix where one explains it, as SIFT + PnP's database verifies it."""
+    camera = pycolmap.Camera(model="PINHOLE", width=int(width), height=int(height),
+                             params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+    camera.has_prior_focal_length = True
+    return camera
 
 
 def _per_image(landmarks: Landmarks, image_descriptors: list[ByteRows] | None
@@ -194,11 +199,14 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[ByteRows] | None
 
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
                      image_descriptors: list[ByteRows] | None = None, threads: int = 1,
-                     device: str | None = None, keypoint_descriptors: list[ByteRows] | None = None
-                     ) -> VerifiedMatches:
+                     device: str | None = None, keypoint_descriptors: list[ByteRows] | None = None,
+                     focal_known: bool = True) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
-    `camera` is the query's (pixels of the feature image; an assumed focal length is fine: the
-    verification tells an essential from a fundamental matrix). Landmarks that carry every keypoint
+    `camera` is the query's (pixels of the feature image). With `focal_known` (given intrinsics)
+    its focal length is a prior, as in SIFT + PnP's database: COLMAP verifies each pair by an
+    essential matrix where one explains it (else the fundamental matrix or a homography); without,
+    by the fundamental matrix or a homography (an assumed focal length then plays no part).
+    Landmarks that carry every keypoint
     of the mapping images (`MappingKeypoints`, format version 3) are matched as SIFT + PnP matches:
     the query against each image's every keypoint, cross-checked as COLMAP cross-checks
     (`cross_checked_matches`), each pair verified on all its matches, and the inliers whose keypoint
@@ -216,6 +224,7 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
     qcam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[*camera.focal, *camera.principal_point])
+    qcam.has_prior_focal_length = bool(focal_known)
     query = ByteRows.of(feats.codes)
     cross = obs.keypoints is not None
     scratch = None if cross or device else ProductBlocks(max((len(site[1]) for site in sites), default=0) * len(feats))
