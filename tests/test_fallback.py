@@ -12,6 +12,7 @@ two-view geometry.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -78,18 +79,28 @@ def _tracks(xyz: np.ndarray, desc: np.ndarray, rng: np.random.Generator) -> Trac
 
 def scene(seed: int = 0) -> tuple[Landmarks, QueryFeatures]:
     """Landmarks with observations, and the query's features (true projections plus as many distractors)."""
+    _, landmarks, feats = scene_and_tracks(seed)
+    return landmarks, feats
+
+
+def scene_and_tracks(seed: int = 0, more: Callable[[Tracks, np.random.Generator], Tracks] | None = None
+                     ) -> tuple[Tracks, Landmarks, QueryFeatures]:
+    """`scene`, with the tracks its landmarks were built from (`more` adds to them first)."""
     rng = np.random.default_rng(seed)
     uv = rng.uniform([4, 4], [CAM.width - 4, CAM.height - 4], (N_POINTS, 2))
     xyz = backproject(uv, R_TRUE, T_TRUE)
     desc = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
-    landmarks = build_landmarks(_tracks(xyz, desc, rng), "synthetic", 120, LandmarksOptions(),
+    tracks = _tracks(xyz, desc, rng)
+    if more is not None:
+        tracks = more(tracks, rng)
+    landmarks = build_landmarks(tracks, "synthetic", 120, LandmarksOptions(),
                                 np.array([[CAM.width, CAM.height]] * len(MAPPING)))
     noisy = unit_descriptors(desc + 0.02 * rng.random(desc.shape))
     distract = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
     feats = QueryFeatures(np.concatenate([uv + rng.normal(0, 0.3, uv.shape),
                                           rng.uniform([0, 0], [CAM.width, CAM.height], (N_POINTS, 2))]),
                           np.concatenate([noisy, distract]).astype(np.float32))
-    return landmarks, feats
+    return tracks, landmarks, feats
 
 
 def _map(tmp_path: Path, landmarks: Landmarks, monkeypatch: pytest.MonkeyPatch, feats: QueryFeatures,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_fallback import CAM, MAPPING, N_POINTS, R_TRUE, T_TRUE, _map, _tracks, backproject, errors, photo
+from test_fallback import CAM, MAPPING, N_POINTS, R_TRUE, T_TRUE, _map, errors, photo, scene_and_tracks
 
 from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
@@ -51,19 +51,7 @@ def with_keypoints(tracks: Tracks, rng: np.random.Generator) -> Tracks:
 
 def scene(seed: int = 0) -> tuple[Tracks, Landmarks, QueryFeatures]:
     """test_fallback's scene, its tracks carrying every keypoint of the mapping images."""
-    rng = np.random.default_rng(seed)
-    uv = rng.uniform([4, 4], [CAM.width - 4, CAM.height - 4], (N_POINTS, 2))
-    xyz = backproject(uv, R_TRUE, T_TRUE)
-    desc = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
-    tracks = with_keypoints(_tracks(xyz, desc, rng), rng)
-    landmarks = build_landmarks(tracks, "synthetic", 120, LandmarksOptions(),
-                                np.array([[CAM.width, CAM.height]] * len(MAPPING)))
-    noisy = unit_descriptors(desc + 0.02 * rng.random(desc.shape))
-    distract = unit_descriptors(rng.random((N_POINTS, 128)) ** 4)
-    feats = QueryFeatures(np.concatenate([uv + rng.normal(0, 0.3, uv.shape),
-                                          rng.uniform([0, 0], [CAM.width, CAM.height], (N_POINTS, 2))]),
-                          np.concatenate([noisy, distract]).astype(np.float32))
-    return tracks, landmarks, feats
+    return scene_and_tracks(seed, with_keypoints)
 
 
 def colmap_cross_check(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
