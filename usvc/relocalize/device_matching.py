@@ -82,17 +82,9 @@ def mutual_reductions(query: np.ndarray, image: np.ndarray,
     device = torch.device(device)
     with torch.inference_mode():
         sim = _tensor(query, device) @ _tensor(image, device).T  # (K, n)
-        rows = torch.arange(sim.shape[0], device=device)
-        first = torch.argmax(sim, dim=1)
-        s1 = sim[rows, first]
         reach = torch.argmax((sim == sim.max(dim=0, keepdim=True).values).to(torch.uint8), dim=0)
-        if sim.shape[1] > 1:
-            sim[rows, first] = float("-inf")
-            s2 = sim.max(dim=1).values
-        else:
-            s2 = torch.full_like(s1, float("-inf"))
-        return (first.cpu().numpy().astype(np.int64), s1.cpu().numpy(), s2.cpu().numpy(),
-                reach.cpu().numpy().astype(np.int64))
+        first, s1, s2 = _first_two(sim)
+        return first, s1, s2, reach.cpu().numpy().astype(np.int64)
 
 
 def two_way_reductions(query: np.ndarray, image: np.ndarray, device: str | torch.device
@@ -108,6 +100,8 @@ def two_way_reductions(query: np.ndarray, image: np.ndarray, device: str | torch
 
 
 def _first_two(sim: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of `sim` (masked in place): the index of the largest entry (the first on ties, as
+    numpy's argmax), the largest and the second largest (-inf where there is one column)."""
     rows = torch.arange(sim.shape[0], device=sim.device)
     first = torch.argmax(sim, dim=1)
     s1 = sim[rows, first]

@@ -93,15 +93,7 @@ def mutual_ratio_matches(query: ByteRows, image: ByteRows, scratch: ProductBlock
         q = q[reach[first[q]] == q]  # the first row to reach its column's largest entry: mutual
         return q, first[q]
     sim = dots(query, image, scratch)  # (K, n), exact integers
-    rows = np.arange(len(query))
-    first = np.argmax(sim, axis=1)
-    s1 = sim[rows, first]
-    if sim.shape[1] > 1:
-        sim[rows, first] = MASKED
-        s2 = sim.max(axis=1)
-        sim[rows, first] = s1  # restore for the mutual check
-    else:
-        s2 = np.full(len(query), MASKED, sim.dtype)
+    first, s1, s2 = _best_two(sim)  # `sim` left as it was, for the mutual check
     return _mutual(sim, _ratio_passes(s1, s2), first)
 
 
@@ -120,7 +112,7 @@ def cross_checked_matches(query: ByteRows, image: ByteRows, device: str | None =
         (first, s1, s2), (back, b1, b2) = two_way_reductions(query.values, image.values, device)
     else:
         sim = dots(query, image)
-        (back, b1, b2), (first, s1, s2) = _best_two(np.ascontiguousarray(sim.T)), _best_two(sim)
+        (first, s1, s2), (back, b1, b2) = _best_two(sim), _best_two(np.ascontiguousarray(sim.T))
     q = _ratio_passes(s1, s2)
     nearest = np.full(len(image), -1, np.int64)
     ok = _ratio_passes(b1, b2)
@@ -131,13 +123,14 @@ def cross_checked_matches(query: ByteRows, image: ByteRows, device: str | None =
 
 def _best_two(sim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each row's column of its largest entry (the first on ties), the largest and the second
-    largest (MASKED for a single column); overwrites `sim`."""
+    largest (MASKED for a single column); `sim` is masked in place meanwhile and restored."""
     rows = np.arange(len(sim))
     first = np.argmax(sim, axis=1)
-    s1 = sim[rows, first].copy()
+    s1 = sim[rows, first]
     if sim.shape[1] > 1:
         sim[rows, first] = MASKED
         s2 = sim.max(axis=1)
+        sim[rows, first] = s1
     else:
         s2 = np.full(len(sim), MASKED, sim.dtype)
     return first, s1, s2
@@ -206,13 +199,13 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     its focal length is a prior, as in SIFT + PnP's database: COLMAP verifies each pair by an
     essential matrix where one explains it (else the fundamental matrix or a homography); without,
     by the fundamental matrix or a homography (an assumed focal length then plays no part).
-    Landmarks that carry every keypoint
-    of the mapping images (`MappingKeypoints`, format version 3) are matched as SIFT + PnP matches:
+    Landmarks that carry every keypoint of the mapping images (`MappingKeypoints`, format
+    version 3) are matched as SIFT + PnP matches:
     the query against each image's every keypoint, cross-checked as COLMAP cross-checks
     (`cross_checked_matches`), each pair verified on all its matches, and the inliers whose keypoint
     observes a landmark lifted; older landmarks, against each image's observations
     (`mutual_ratio_matches`). `image_descriptors` / `keypoint_descriptors` are the descriptors of
-    each image's observations (`observation_descriptors`) / keypoints (`keypoint_descriptors`),
+    each image's observations (`observation_descriptors`) / keypoints (`mapping_descriptors`),
     held once per map. Each image is matched and its pair verified as one task, the tasks on
     `threads` threads (numpy's products and COLMAP's RANSAC release Python's lock; each pair has
     its own seeded RANSAC, so the matches are the same bits whatever the count). With a torch
