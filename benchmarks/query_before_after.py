@@ -9,6 +9,7 @@ drifts affects both alike. Writes results/benchmarks/query_before_after.json: pe
 each run's median seconds per query, the median over the runs, and how many answers are the same,
 bit for bit. Run (nothing else heavy running):
 python benchmarks/query_before_after.py --before HEAD~3 --scene-dir data/mini data/office data/bird --size own 640x480
+`--final guided` times both trees' guided passes alone (a tree from before the last pass has no other).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, out: Path) -> None:
+def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, final: str, out: Path) -> None:
     """One run, in a child process whose `usvc` is `tree`'s."""
     sys.path.insert(0, str(tree))
     import usvc  # noqa: F401  (first: it sets OpenMP's wait policy before torch loads)
@@ -40,8 +41,14 @@ def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, 
 
     paths = ScenePaths.of_scene_dir(scene_dir)
     photos = query_photos(scene_dir, None if size == "own" else tuple(int(v) for v in size.split("x")))
-    reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(refine="features", features_extractor=extractor),
-                        device="cpu")
+    settings = {"refine": "features", "features_extractor": extractor}
+    if final != "default":  # a tree from before the last pass existed ends with the guided passes
+        fields = getattr(RelocalizeOptions, "__dataclass_fields__", {})
+        if "features_final" in fields:
+            settings["features_final"] = final
+        elif final != "guided":
+            raise SystemExit(f"--final {final}: {tree} has no relocalize.features_final")
+    reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(**settings), device="cpu")
     for rgb, intr in photos[:2]:
         reloc.localize(rgb, intr)
     seconds, answers = [], []
@@ -55,10 +62,10 @@ def _child(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, 
                                "median_ms": 1000 * float(np.median(seconds)), "answers": answers}))
 
 
-def _run(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, tmp: Path) -> dict:
+def _run(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, final: str, tmp: Path) -> dict:
     out = tmp / "run.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(tree), str(scene_dir.resolve()), size,
-           str(passes), extractor, str(out)]
+           str(passes), extractor, final, str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"a run in {tree} failed:\n{proc.stderr[-3000:]}")
@@ -67,8 +74,8 @@ def _run(tree: Path, scene_dir: Path, size: str, passes: int, extractor: str, tm
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        tree, scene_dir, size, passes, extractor, out = sys.argv[2:8]
-        _child(Path(tree), Path(scene_dir), size, int(passes), extractor, Path(out))
+        tree, scene_dir, size, passes, extractor, final, out = sys.argv[2:9]
+        _child(Path(tree), Path(scene_dir), size, int(passes), extractor, final, Path(out))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before", required=True, help="git revision of the code to compare with this tree's")
@@ -77,7 +84,16 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--passes", type=int, default=2)
     ap.add_argument("--extractor", choices=["opencv", "colmap"], default="opencv")
+    ap.add_argument("--final", choices=["default", "confirmed", "guided", "images"], default="default",
+                    help="relocalize.features_final in both trees (a tree without it ends with the guided passes)")
+    ap.add_argument("--before-scene-dir", type=Path, nargs="+",
+                    help="the scene folders the revision reads instead, one per --scene-dir (the same map, its "
+                         "landmarks in the format that code reads); its answers are then not compared")
+    ap.add_argument("--name", default="query_before_after", help="the report's name under results/benchmarks")
     args = ap.parse_args()
+    before_dirs = args.before_scene_dir or args.scene_dir
+    if len(before_dirs) != len(args.scene_dir):
+        ap.error(f"--before-scene-dir: {len(before_dirs)} folders for {len(args.scene_dir)} --scene-dir")
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from _report import scene_of, write_report
 
@@ -88,14 +104,15 @@ def main() -> None:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(before), args.before],
                        check=True)
         try:
-            for scene_dir in args.scene_dir:
+            for scene_dir, before_dir in zip(args.scene_dir, before_dirs):
                 for size in args.size:
                     runs: dict[str, list[dict]] = {"before": [], "after": []}
                     for _ in range(args.rounds):
-                        for which, tree in (("before", before), ("after", ROOT)):
-                            runs[which].append(_run(tree, scene_dir, size, args.passes, args.extractor, tmp))
+                        for which, tree, folder in (("before", before, before_dir), ("after", ROOT, scene_dir)):
+                            runs[which].append(_run(tree, folder, size, args.passes, args.extractor, args.final, tmp))
                     ms = {k: [r["median_ms"] for r in v] for k, v in runs.items()}
-                    same = sum(a == b for a, b in zip(runs["before"][0]["answers"], runs["after"][0]["answers"]))
+                    same = sum(a == b for a, b in zip(runs["before"][0]["answers"], runs["after"][0]["answers"])) \
+                        if before_dir == scene_dir else None
                     row = {"scene": scene_of(scene_dir), "size": size, "queries": runs["after"][0]["queries"],
                            "threads": runs["after"][0]["threads"], "before_ms": ms["before"], "after_ms": ms["after"],
                            "before_median_ms": statistics.median(ms["before"]),
@@ -103,10 +120,13 @@ def main() -> None:
                     rows.append(row)
                     print(f"{row['scene']:8s} {size:8s} before {row['before_median_ms']:.0f} ms  after "
                           f"{row['after_median_ms']:.0f} ms  same answers {same} of {row['queries']}")
+                    if before_dir != scene_dir:
+                        row["before_scene_dir"] = str(before_dir)
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(before)], check=False)
     rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", args.before], capture_output=True, text=True)
-    write_report("query_before_after", {"before": rev.stdout.strip(), "extractor": args.extractor, "rows": rows})
+    write_report(args.name, {"before": rev.stdout.strip(), "extractor": args.extractor, "final": args.final,
+                             "rows": rows})
 
 
 if __name__ == "__main__":

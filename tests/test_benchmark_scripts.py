@@ -128,3 +128,13 @@ def test_pipeline_time_maps_a_capture_only_in_a_fresh_clone(tmp_path):
     proc = subprocess.run([sys.executable, "benchmarks/pipeline_time.py", "--map", str(tmp_path)], cwd=REPO,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--fresh" in proc.stderr
+
+
+def test_query_before_after_pairs_each_scene_with_the_revisions_folder():
+    """`--before-scene-dir` gives the revision one folder per scene (a map's landmarks in the format
+    that code reads); a count that does not pair up stops before any worktree is made."""
+    proc = subprocess.run([sys.executable, "benchmarks/query_before_after.py", "--before", "HEAD",
+                           "--scene-dir", "data/mini", "data/office", "--before-scene-dir", "data/mini"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "--before-scene-dir: 1 folders for 2 --scene-dir" in proc.stderr
