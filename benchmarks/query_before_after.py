@@ -5,9 +5,10 @@ tree first on its path: it localizes every query photo of the scene with the sce
 (given intrinsics, `relocalize.refine=features`, OpenCV's SIFT unless --extractor colmap),
 --passes times after 2 warm-up photos, and reports the seconds and the answers (pose, refusal).
 Per scene and size the runs alternate before/after --rounds times, so that a machine whose speed
-drifts affects both alike. Writes results/benchmarks/query_before_after.json: per scene and size,
-each run's median seconds per query, the median over the runs, and how many answers are the same,
-bit for bit. Run (nothing else heavy running):
+drifts affects both alike. Writes results/benchmarks/query_before_after.json (`--name` for another
+name): per scene and size, each run's median seconds per query, the median over the runs, and how
+many answers are the same, bit for bit (not counted where `--before-scene-dir` gives the revision
+other folders). Run (nothing else heavy running):
 python benchmarks/query_before_after.py --before HEAD~3 --scene-dir data/mini data/office data/bird --size own 640x480
 `--final guided` times both trees' guided passes alone (a tree from before the last pass has no other).
 """
