@@ -66,6 +66,29 @@ def test_the_loop_reads_the_device_only_once_a_block(monkeypatch):
     assert math.isfinite(summary["final_loss"]) and math.isfinite(summary["final_bundle_loss"])
 
 
+def test_the_next_block_is_drawn_before_the_queued_one_is_read(monkeypatch):
+    """On a GPU the steps of a block are queued, not run, when the loop reaches the read: drawing the
+    next block first keeps the host's draw (the keypoint groups are picked in Python) beside the
+    device's work instead of between blocks. Each block is drawn once, in order, and none after
+    the last."""
+    events: list[str] = []
+    real_block, real_read_back = trainer._BatchDraw.block, trainer.read_back
+
+    def block(self, steps, device):
+        events.append(f"draw {steps}")
+        return real_block(self, steps, device)
+
+    def read_back(values):
+        events.append(f"read {len(values)}")
+        return real_read_back(values)
+
+    monkeypatch.setattr(trainer._BatchDraw, "block", block)
+    monkeypatch.setattr(trainer, "read_back", read_back)
+    train_head(_bundle_buffer(), 3.0, _opts(), head_width=32, head_blocks=1)
+    assert events == ["draw 7", "draw 7", "read 7", "draw 7", "read 7", "draw 7", "read 7", "draw 2", "read 7",
+                      "read 2"]
+
+
 def test_the_block_length_does_not_change_the_map():
     """Batches are drawn on the host in the order the seed gives, however many at a time."""
     buf = _bundle_buffer()

@@ -220,9 +220,10 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     only, so the trained head is the same with or without it.
 
     The buffer and the per-view cameras go to `device` once; batches are drawn on the host a block
-    of `opts.report_every` steps at a time (the same draws on every device) and sent in one copy;
-    the loop reads nothing back from the device but each block's statistics (`read_back`), where
-    the divergence check and the progress bar look."""
+    of `opts.report_every` steps at a time (the same draws on every device) and sent in one copy,
+    the next block while the device runs the queued one; the loop reads nothing back from the
+    device but each block's statistics (`read_back`), where the divergence check and the progress
+    bar look."""
     check(opts, "train")
     precision = resolve_precision(opts.precision, device)
     if not (np.isfinite(median_depth) and median_depth > 0):
@@ -307,9 +308,9 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     start = time.perf_counter()
     bar = tqdm(total=opts.iterations, desc="train", unit="it")
     with _deterministic(device):
+        block = draw.block(min(opts.report_every, opts.iterations), device)
         for lo in range(0, opts.iterations, opts.report_every):
             hi = min(lo + opts.report_every, opts.iterations)
-            block = draw.block(hi - lo, device)
             no_groups = block.idx[:, :0]
             for it in range(lo, hi):
                 k = it - lo
@@ -343,6 +344,10 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
                     validation.append({"iteration": it + 1, **fit})
                     log.debug("iteration %d: held-out median reprojection %.2f px, %.1f %% within 10 px", it + 1,
                               fit["median_reprojection_px"], 100 * fit["within_10px"])
+            # The next block is drawn while the device works through this one's queued steps (the
+            # same draws in the same order: drawing reads nothing the steps write); then the read.
+            if hi < opts.iterations:
+                block = draw.block(min(hi + opts.report_every, opts.iterations) - hi, device)
             history[lo:hi] = read_back(steps[lo:hi])
             bad = np.flatnonzero(~np.isfinite(history[lo:hi, _TOTAL]))
             if bad.size:
