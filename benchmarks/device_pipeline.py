@@ -14,7 +14,9 @@ device). It writes `results/benchmarks/device_pipeline_<device>_<scene>.json` (a
 - train: iterations, samples per second, precision; the repeat's seconds and `same_map_twice`;
 - relocalize: ms per query; metrics: the (5cm,5deg)/(2cm,2deg)/(1cm,1deg) shares and medians;
 - the whole run's seconds (what `dvc repro` of the scene costs from scratch on this machine);
-- `head_throughput`: samples per second of `train_head` at each `--batch-sizes` value.
+- `head_throughput`: samples per second of `train_head` at each `--batch-sizes` value;
+- `step_profile`: where a training step's time goes (`step_profile.py`: kernels and operators a
+  step, the operators with the most device time), with the step captured as a CUDA graph and not.
 
     python benchmarks/device_pipeline.py --device cuda                   # the bundled scene
     python benchmarks/device_pipeline.py --device cuda --scene mini --scene office
@@ -43,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from _report import write_report  # noqa: E402
 from pipeline_time import read_json, run_stage, timing_record  # noqa: E402
+from step_profile import profile_scene  # noqa: E402
 
 from usvc.core.artifact_names import MAP_PT  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
@@ -89,7 +92,7 @@ def head_throughput(data: Path, scene: str, device: str, overrides: list[str], b
 
 def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env: dict[str, str],
                   batch_sizes: list[int], head_iterations: int, first: str = STAGES[0], repeat: bool = True,
-                  setting: str | None = None) -> dict:
+                  setting: str | None = None, profile_iterations: int = 0) -> dict:
     """`device`: where torch runs (resolved); `setting`: the device setting the stages get, as a
     user would give it (default: `device`; `auto` as `dvc repro` runs with the default config)."""
     data, results = work / "data", work / "results"
@@ -138,6 +141,8 @@ def measure_scene(scene: str, device: str, work: Path, overrides: list[str], env
     if batch_sizes:
         result["head_throughput"] = head_throughput(data, scene, device, overrides,
                                                     batch_sizes, head_iterations)
+    if profile_iterations:
+        result["step_profile"] = profile_scene(data, scene, device, overrides, profile_iterations)
     return result
 
 
@@ -151,6 +156,8 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="*", default=[2048, 8192, 32768],
                         help="batch sizes at which to time the head's steps alone (none: skip)")
     parser.add_argument("--head-iterations", type=int, default=300)
+    parser.add_argument("--profile-iterations", type=int, default=60,
+                        help="training steps profiled after the stages (step_profile.py; 0: skip)")
     parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0],
                         help="first stage to run; the earlier stages' outputs must be in --work already")
     parser.add_argument("--no-repeat", action="store_true", help="skip training the map a second time")
@@ -172,7 +179,8 @@ def main() -> None:
             work = (args.work or Path(tmp)) / scene
             work.mkdir(parents=True, exist_ok=True)
             result = measure_scene(scene, device, work, args.overrides, env, args.batch_sizes, args.head_iterations,
-                                   args.first, not args.no_repeat, setting=args.device)
+                                   args.first, not args.no_repeat, setting=args.device,
+                                   profile_iterations=args.profile_iterations)
             reports.append(write_report(report_name(device, scene), result))
             print(json.dumps({k: result[k] for k in ("scene", "device_name", "total_seconds", "same_map_twice",
                                                       "metrics")}, indent=1))

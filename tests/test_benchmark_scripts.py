@@ -84,6 +84,29 @@ def test_device_pipeline_gives_the_stages_the_device_setting_as_asked(tmp_path, 
         assert seen[-1][0] == "generate" and expected in seen[-1][1]
 
 
+def test_step_profile_counts_a_steps_operators_and_ranks_them(monkeypatch):
+    """benchmarks/step_profile.py on a tiny buffer: per-step counts (the head's products are there
+    once per layer and pass), its own times ranked, the step's wall; kernels only where there is a
+    device."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "tests"))
+    from step_profile import profile_training
+    from test_train_device import _bundle_buffer, _opts
+
+    record = profile_training(_bundle_buffer(), 3.0, _opts(report_every=5), head_width=32, head_blocks=1,
+                              device="cpu", iterations=10)
+    assert record["iterations"] == 10 and record["cuda_graph"] is None
+    assert record["kernels_per_step"] is None and record["kernel_ms_per_step"] is None
+    assert record["wall_ms_per_step"] > 0 and record["operators_per_step"] > 50
+    top = record["top"]
+    times = [r["self_us_per_step"] for r in top]
+    assert times == sorted(times, reverse=True) and times[0] > 0
+    products = {r["name"]: r["per_step"] for r in top if r["name"] in ("aten::mm", "aten::addmm")}
+    # 2 blocks x 3 layers + fc1, fc2, out = 9 linear layers: 9 forward products (addmm) and their
+    # backward products (mm: the input's gradient, but the first layer's, and every weight's)
+    assert products.get("aten::addmm") == 9 and products.get("aten::mm", 0) >= 9
+
+
 def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked(monkeypatch):
     """benchmarks/wrong_prior.py: the perturbed pose is turned by exactly the degrees asked about
     an axis through the camera centre, and its centre moved by exactly the shift asked."""
