@@ -1,15 +1,16 @@
 """Where a training step's time goes on a device: torch's profiler over a short `train_head` run.
 
 Per step: the device kernels launched (on CUDA; a captured step's kernels are recorded inside its
-graph too), the operators torch ran, and the operators that took the most time on the device (on
-the CPU: on the host), with their counts per step. On a GPU this says whether a step is bound by
-its kernels' number (launch-bound: many kernels of a few microseconds), by a few slow kernels, or
-by the host (device time well below the step's wall). It writes
+graph too), the operators torch ran, the operators that took the most time on the device (on the
+CPU: on the host) with their counts per step, and the host's time drawing a step's batches. On a
+GPU this says whether a step is bound by its kernels' number (launch-bound: many kernels of a few
+microseconds), by a few slow kernels, or by the host (device time well below the step's wall). It writes
 `results/benchmarks/step_profile_<device>_<scene>.json`, and `device_pipeline.py` adds the same
 record to its report.
 
     python benchmarks/step_profile.py --scene mini --device cuda
-    python benchmarks/step_profile.py --scene mini --device cuda -- train.batch_size=8192 train.bundle_groups_per_batch=256
+    python benchmarks/step_profile.py --scene mini --device cuda --name step_profile_cuda_mini_batch8192 -- \
+        train.batch_size=8192 train.bundle_groups_per_batch=256
     python benchmarks/step_profile.py --scene mini --device cpu --iterations 20
 
 Needs the scene's buffer (the pipeline up to `buffer`; `--data` for another data folder).
@@ -37,6 +38,27 @@ def _self_time_us(row, device: bool) -> float:
         if value is not None:
             return float(value)
     return 0.0
+
+
+def host_draw_ms(buf, opts, steps: int = 100) -> float:
+    """Host milliseconds a step of drawing the batches takes, as the trainer draws them (a block of
+    `steps` at a time: the cells' permutation, the bundle loss's keypoint groups picked in Python).
+    The loop draws the next block while the device runs the queued one, so on a GPU this is hidden
+    while it stays below the device's time a step."""
+    import numpy as np
+    import torch
+
+    from usvc.train.group_sampler import GroupSampler
+    from usvc.train.trainer import _BatchDraw
+
+    sampler = None
+    if opts.bundle_weight > 0 and buf.has_keypoints:
+        sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch, opts.bundle_obs_per_group,
+                               np.random.default_rng([0, 2]))
+    draw = _BatchDraw(len(buf.features), opts.batch_size, torch.Generator().manual_seed(0), sampler)
+    start = time.perf_counter()
+    draw.block(steps, "cpu")
+    return 1e3 * (time.perf_counter() - start) / steps
 
 
 def profile_training(buf, median_depth: float, opts, head_width: int, head_blocks: int, device: str,
@@ -79,6 +101,7 @@ def profile_training(buf, median_depth: float, opts, head_width: int, head_block
         "kernels_per_step": round(len(kernels) / iterations, 1) if on_cuda else None,
         "kernel_ms_per_step": round(kernel_us / 1e3 / iterations, 3) if on_cuda else None,
         "operators_per_step": round(len(operators) / iterations, 1),
+        "host_draw_ms_per_step": round(host_draw_ms(buf, opts), 3),
         "top": table,
     }
 
@@ -104,7 +127,8 @@ def profile_scene(data: Path, scene: str, device: str, overrides: list[str], ite
         records.append(record)
         print(f"  step profile ({record['cuda_graph'] or device}): {record['wall_ms_per_step']:.2f} ms a step, "
               f"{record['kernels_per_step']} kernels ({record['kernel_ms_per_step']} ms on the device), "
-              f"{record['operators_per_step']} operators", flush=True)
+              f"{record['operators_per_step']} operators, the host's draw "
+              f"{record['host_draw_ms_per_step']:.2f} ms a step", flush=True)
     return records
 
 
@@ -114,6 +138,7 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="data folder holding <scene>/buffer")
     parser.add_argument("--iterations", type=int, default=60, help="steps profiled (after as many unprofiled)")
+    parser.add_argument("--name", help="report name (default: step_profile_<device>_<scene>)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = parser.parse_args()
     from usvc.core.device import resolve_device
@@ -126,7 +151,7 @@ def main() -> None:
     if args.iterations < 1:
         raise SystemExit(f"--iterations {args.iterations}: must be >= 1")
     records = profile_scene(args.data.resolve(), args.scene, device, args.overrides, args.iterations)
-    path = write_report(f"step_profile_{device.replace(':', '')}_{args.scene}",
+    path = write_report(args.name or f"step_profile_{device.replace(':', '')}_{args.scene}",
                         {"scene": args.scene, "overrides": args.overrides, "profiles": records})
     print("report:", path)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import runpy
 import subprocess
 import sys
@@ -98,6 +99,7 @@ def test_step_profile_counts_a_steps_operators_and_ranks_them(monkeypatch):
     assert record["iterations"] == 10 and record["cuda_graph"] is None
     assert record["kernels_per_step"] is None and record["kernel_ms_per_step"] is None
     assert record["wall_ms_per_step"] > 0 and record["operators_per_step"] > 50
+    assert 0 < record["host_draw_ms_per_step"] < record["wall_ms_per_step"]
     top = record["top"]
     times = [r["self_us_per_step"] for r in top]
     assert times == sorted(times, reverse=True) and times[0] > 0
@@ -161,3 +163,22 @@ def test_query_before_after_pairs_each_scene_with_the_revisions_folder():
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "--before-scene-dir: 1 folders for 2 --scene-dir" in proc.stderr
+
+
+@pytest.mark.parametrize("quick", [False, True])
+def test_device_check_runs_existing_benchmarks_within_one_call(quick):
+    """scripts/device_check.sh (one call on a GPU machine, at most ten minutes): each step names a
+    benchmark that exists, the steps' limits add up to under a call's ten minutes, and the CUDA
+    tests it runs are the files that carry the `cuda` mark."""
+    args = ["bash", str(REPO / "scripts" / "device_check.sh"), "--dry-run"] + (["--quick"] if quick else [])
+    lines = subprocess.run(args, capture_output=True, text=True, check=True, timeout=60).stdout.splitlines()
+    names = [line.split(" ")[0] for line in lines]
+    assert names == ["pytest_cuda", "pipeline", "query", "folder", "profile_8192"]
+    limits = [int(line.split("(")[1].split(" s)")[0]) for line in lines]
+    assert sum(limits) <= (900 if quick else 570)
+    scripts = [word for line in lines for word in line.split() if word.startswith("benchmarks/")]
+    assert len(scripts) == 4 and all((REPO / s).is_file() for s in scripts)
+    cuda_mark = re.compile(r"pytest\.mark\.cuda")
+    marked = sorted(p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_*.py")
+                    if cuda_mark.search(p.read_text()))
+    assert sorted(w for w in lines[0].split() if w.startswith("tests/")) == marked and marked

@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# One call on a GPU machine that measures usvc's GPU path: the CUDA tests, the bundled scene from
+# scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
+# training step's profile), a 640 x 480 query, a folder of photos, and the training step at a
+# larger batch. Each step has its own time limit (together under ten minutes) and runs even when
+# one before it failed; `steps.txt` says how each ended.
+#
+#   bash scripts/device_wheels.sh            # here, with network: the wheels such a machine lacks
+#   bash scripts/device_check.sh             # there (the checkout and .whl/ carried beside it)
+#   bash scripts/device_check.sh --quick     # anywhere, in minutes: the same steps, short (CPU too)
+#
+# Everything goes to $OUT (default results/device/): device.txt (the card, torch, COLMAP), steps.txt,
+# benchmarks/*.json (each benchmark's report), logs/<step>.log. Where DIR (--wheels, default .whl/)
+# exists, its wheels are installed offline first and DIR/src joins PYTHONPATH; the checkout is
+# used in place (PYTHONPATH), not installed.
+set -uo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+wheels="$REPO/.whl"
+quick=0
+dry=0
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --quick) quick=1 ;;
+        --dry-run) dry=1 ;;
+        --wheels) shift; wheels="${1:?--wheels needs a folder}" ;;
+        -h|--help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'
+                   echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR]"; exit 0 ;;
+        *) echo "error: unknown argument $1" >&2; exit 2 ;;
+    esac
+    shift
+done
+python="${PYTHON:-python}"
+out="${OUT:-$REPO/results/device}"
+work="${USVC_DEVICE_WORK:-${TMPDIR:-/tmp}/usvc-device-work}"
+
+# name, time limit (s), command: the order is the order of importance
+steps=()
+add() { steps+=("$1|$2|${*:3}"); }
+cuda_tests="$(grep -lE 'pytest\.mark\.cuda' "$REPO"/tests/test_*.py | sed "s|$REPO/||" | tr '\n' ' ')"
+if [[ $quick == 1 ]]; then
+    add pytest_cuda 120 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
+    add pipeline 400 "$python benchmarks/device_pipeline.py --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
+    add query 120 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"
+    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto"
+    add profile_8192 120 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --iterations 5 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
+else
+    add pytest_cuda 90 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
+    add pipeline 240 "$python benchmarks/device_pipeline.py --device auto --work $work --batch-sizes 2048 8192"
+    add query 60 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
+    add folder 90 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto"
+    add profile_8192 60 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --name step_profile_mini_batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
+fi
+
+if [[ $dry == 1 ]]; then
+    for s in "${steps[@]}"; do IFS='|' read -r name limit cmd <<< "$s"; echo "$name ($limit s): $cmd"; done
+    exit 0
+fi
+
+mkdir -p "$out/benchmarks" "$out/logs"
+: > "$out/steps.txt"
+export USVC_BENCHMARK_DIR="$out/benchmarks"
+if [[ -d "$wheels" ]]; then
+    if compgen -G "$wheels/*.whl" > /dev/null; then
+        "$python" -m pip install --quiet --no-index --no-deps "$wheels"/*.whl > "$out/logs/install.log" 2>&1 \
+            || echo "install of $wheels/*.whl failed: see logs/install.log" | tee -a "$out/steps.txt"
+    fi
+    [[ -d "$wheels/src" ]] && export PYTHONPATH="$wheels/src${PYTHONPATH:+:$PYTHONPATH}"
+fi
+export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
+cd "$REPO" || exit 1
+
+{
+    command -v nvidia-smi > /dev/null && nvidia-smi -L
+    nproc
+    "$python" - <<'PY'
+import importlib, platform
+import torch
+print("python", platform.python_version(), "torch", torch.__version__, "cuda", torch.version.cuda,
+      "available", torch.cuda.is_available())
+if torch.cuda.is_available():
+    print("device", torch.cuda.get_device_name(0), "bf16", torch.cuda.is_bf16_supported())
+missing = []
+for module in ("numpy", "scipy", "cv2", "h5py", "pycolmap", "poselib", "hydra", "omegaconf", "plyfile",
+               "pytorch_msssim", "tqdm", "threadpoolctl", "yaml", "PIL", "matplotlib"):
+    try:
+        m = importlib.import_module(module)
+        print(module, getattr(m, "__version__", ""))
+    except Exception as exc:  # noqa: BLE001  (what is missing, named, and the run goes on)
+        missing.append(f"{module} ({exc})")
+if missing:
+    print("MISSING:", "; ".join(missing))
+import pycolmap
+print("pycolmap cuda", getattr(pycolmap, "has_cuda", "?"))
+PY
+} > "$out/device.txt" 2>&1
+cat "$out/device.txt"
+
+for s in "${steps[@]}"; do
+    IFS='|' read -r name limit cmd <<< "$s"
+    start=$SECONDS
+    # shellcheck disable=SC2086  (the command is a word list on purpose)
+    timeout "$limit" $cmd > "$out/logs/$name.log" 2>&1
+    rc=$?
+    line="$name: exit $rc in $((SECONDS - start)) s (limit $limit s)"
+    [[ $rc == 124 ]] && line="$line, cut off"
+    echo "$line" | tee -a "$out/steps.txt"
+    tail -n 3 "$out/logs/$name.log"
+done
+ls "$out/benchmarks"
