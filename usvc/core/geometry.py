@@ -6,7 +6,6 @@ Quaternions are Hamilton (w, x, y, z); poses are world-to-camera (R, t).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -15,11 +14,15 @@ def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
     norm = float(np.sqrt(w * w + x * x + y * y + z * z))
     if not np.isfinite(norm) or norm < 1e-8:
         raise ValueError(f"quaternion ({w}, {x}, {y}, {z}) is not a rotation")
+    from scipy.spatial.transform import Rotation  # here: SciPy's spatial module is a quarter second of every start
+
     return Rotation.from_quat([x / norm, y / norm, z / norm, w / norm]).as_matrix()
 
 
 def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     """Unit (w, x, y, z) quaternion of R with the canonical sign w >= 0."""
+    from scipy.spatial.transform import Rotation
+
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return -q if w < 0 else q
