@@ -3,11 +3,13 @@ at --size as arrays) localized with its own map through `Relocalizer.localize_ma
 time and several at once (--workers), each worker with the threads divided among them, the worker
 counts alternating --rounds times. The photos are the scene's queries repeated --repeat times;
 every answer is checked bit for bit against the same photo localized alone with the same threads
-per query. Writes
+per query. With --processes each worker count above one runs as worker processes too (their start
+included in the time). Writes
 results/benchmarks/folder_throughput_<scene>[_<size>][_<device>].json.
 Run (nothing else heavy running):
 python benchmarks/folder_throughput.py --scene-dir data/bird --workers 1 2      # a 2-core CPU
 python benchmarks/folder_throughput.py --scene-dir data/bird --workers 1 4 8 16 --device cuda
+python benchmarks/folder_throughput.py --scene-dir data/mini --workers 1 2 --repeat 5 --processes
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3,
                     help="every worker count this many times, alternating (a machine's speed drifts)")
     ap.add_argument("--device", default="cpu", help="the relocalizer's device: auto | cpu | cuda | cuda:N")
+    ap.add_argument("--processes", action="store_true",
+                    help="also every worker count above one as processes (localize_many(processes=True): "
+                         "their start included in the time)")
     args = ap.parse_args()
     threads = torch.get_num_threads()
     paths = ScenePaths.of_scene_dir(args.scene_dir)
@@ -61,32 +66,44 @@ def main() -> None:
     reloc = Relocalizer(paths.map_file, device=args.device)
     for image, intrinsics in photos[:2]:  # warm-up
         reloc.localize(image, intrinsics)
-    alone, runs = {}, {w: [] for w in args.workers}
+    alone = {}
+    kinds = [(w, kind) for w in args.workers for kind in ("threads", "processes")
+             if kind == "threads" or (args.processes and w > 1)]
+    runs: dict[tuple[int, str], list[dict]] = {k: [] for k in kinds}
     for workers in args.workers:
         with query_threads(threads_per_query(threads, workers)):  # each photo alone with those threads
             alone[workers] = [reloc.localize(image, intrinsics) for image, intrinsics in photos]
     for _ in range(args.rounds):
-        for workers in args.workers:
+        for workers, kind in kinds:
             start = time.perf_counter()
-            answers = list(reloc.localize_many(batch, workers=workers))
+            answers, first = [], None
+            for answer in reloc.localize_many(batch, workers=workers, processes=kind == "processes"):
+                answers.append(answer)
+                first = first or time.perf_counter() - start
             seconds = time.perf_counter() - start
             same = sum(_same(a, alone[workers][k % len(photos)]) for k, a in enumerate(answers))
-            runs[workers].append({"seconds": seconds, "same_answers_as_alone": same,
-                                  "answered": sum(a.success for a in answers)})
-            print(f"workers {workers:2d} ({threads_per_query(threads, workers)} threads each): "
-                  f"{len(batch) / seconds:.2f} photos/s; same answers {same} of {len(batch)}")
+            runs[workers, kind].append({"seconds": seconds, "first_answer_seconds": first,
+                                        "same_answers_as_alone": same, "answered": sum(a.success for a in answers)})
+            print(f"workers {workers:2d} {kind:9s} ({threads_per_query(threads, workers)} threads each): "
+                  f"{len(batch) / seconds:.2f} photos/s ({(len(batch) - 1) / (seconds - first):.2f} after the "
+                  f"first answer, {first:.2f} s); same answers {same} of {len(batch)}")
     rows = []
-    for workers in args.workers:
-        rates = [len(batch) / r["seconds"] for r in runs[workers]]
-        rows.append({"workers": workers, "threads_per_query": threads_per_query(threads, workers),
+    for workers, kind in kinds:
+        rates = [len(batch) / r["seconds"] for r in runs[workers, kind]]
+        after = [(len(batch) - 1) / (r["seconds"] - r["first_answer_seconds"]) for r in runs[workers, kind]]
+        rows.append({"workers": workers, "kind": kind, "threads_per_query": threads_per_query(threads, workers),
                      "photos": len(batch), "photos_per_second_median": float(np.median(rates)),
+                     "after_first_answer_photos_per_second_median": float(np.median(after)),
+                     "first_answer_seconds_median": float(np.median([r["first_answer_seconds"]
+                                                                     for r in runs[workers, kind]])),
                      "photos_per_second": rates, "ms_per_photo_median": 1000 / float(np.median(rates)),
-                     "same_answers_as_alone": min(r["same_answers_as_alone"] for r in runs[workers]),
-                     "answered": runs[workers][0]["answered"]})
-        print(f"workers {workers:2d}: median {rows[-1]['photos_per_second_median']:.2f} photos/s")
+                     "same_answers_as_alone": min(r["same_answers_as_alone"] for r in runs[workers, kind]),
+                     "answered": runs[workers, kind][0]["answered"]})
+        print(f"workers {workers:2d} {kind:9s}: median {rows[-1]['photos_per_second_median']:.2f} photos/s, "
+              f"{rows[-1]['after_first_answer_photos_per_second_median']:.2f} after the first answer")
     first = np.asarray(photos[0][0]) if args.size else None
     name = scene_of(args.scene_dir) + (f"_{first.shape[1]}x{first.shape[0]}" if first is not None else "") \
-        + ("" if args.device == "cpu" else f"_{reloc.device}")
+        + ("" if args.device == "cpu" else f"_{reloc.device}") + ("_processes" if args.processes else "")
     write_report(f"folder_throughput_{name}", {"scene": scene_of(args.scene_dir), "queries": len(photos),
                                                "repeat": args.repeat, "threads": threads,
                                                "device": str(reloc.device), "decoded_by_each_query": not args.size,

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # One call on a GPU machine that measures usvc's GPU path: the CUDA tests, the bundled scene from
 # scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
-# training step's profile), a 640 x 480 query, a folder of photos, and the training step at a
-# larger batch. Each step has its own time limit (together under ten minutes) and runs even when
-# one before it failed; `steps.txt` says how each ended.
+# training step's profile), a 640 x 480 query, a folder of photos (worker threads and worker
+# processes), and the training step at a larger batch. Each step has its own time limit (together
+# under ten minutes) and runs even when one before it failed; `steps.txt` says how each ended.
 #
 #   bash scripts/device_wheels.sh            # here, with network: the wheels such a machine lacks
 #   bash scripts/device_check.sh             # there (the checkout and .whl/ carried beside it)
@@ -24,7 +24,7 @@ while [[ $# -gt 0 ]]; do
         --quick) quick=1 ;;
         --dry-run) dry=1 ;;
         --wheels) shift; wheels="${1:?--wheels needs a folder}" ;;
-        -h|--help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'
+        -h|--help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
                    echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR]"; exit 0 ;;
         *) echo "error: unknown argument $1" >&2; exit 2 ;;
     esac
@@ -42,13 +42,13 @@ if [[ $quick == 1 ]]; then
     add pytest_cuda 120 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
     add pipeline 400 "$python benchmarks/device_pipeline.py --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
     add query 120 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"
-    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto"
+    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto --processes"
     add profile_8192 120 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --iterations 5 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 else
     add pytest_cuda 90 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
     add pipeline 240 "$python benchmarks/device_pipeline.py --device auto --work $work --batch-sizes 2048 8192"
     add query 60 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
-    add folder 90 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto"
+    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
     add profile_8192 60 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --name step_profile_mini_batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
 

@@ -1,6 +1,6 @@
 """Several photos localized at a time (`usvc.relocalize.photo_batch`, `Relocalizer.localize_many`,
-`usvc localize --workers`): the answers in the photos' order, bit for bit those of the photos one
-after the other with the same threads per query; each query's side work in place."""
+`usvc localize --workers`, with `--processes` too): the answers in the photos' order, bit for bit
+those of the photos one after the other with the same threads per query; each query's side work in place."""
 
 from __future__ import annotations
 
@@ -127,13 +127,16 @@ def test_cli_workers_give_the_same_records_in_the_same_order(tmp_path: Path):
     (folder / "p2b.jpg").write_bytes(b"not a jpeg")  # an unreadable photo keeps its place
     base = ["localize", "--map", str(map_path), "--encoder-weights", str(weights), "--focal", "130", str(folder)]
     runs = {}
-    for threads, workers in ((1, 1), (3, 3)):
+    for threads, workers, more in ((1, 1, []), (3, 3, []), (3, 3, ["--processes"])):
         proc = subprocess.run([sys.executable, "-m", "usvc.cli", "--threads", str(threads), *base,
-                               "--workers", str(workers)], cwd=REPO, capture_output=True, text=True, timeout=300)
+                               "--workers", str(workers), *more], cwd=REPO, capture_output=True, text=True,
+                              timeout=300)
         assert proc.returncode == 1, proc.stderr  # the unreadable photo
-        runs[workers] = _records(proc.stdout)
-    assert [Path(r["name"]).name for r in runs[1]] == ["p0.png", "p1.png", "p2.png", "p2b.jpg", "p3.png", "p4.png"]
-    assert runs[3] == runs[1]
+        runs[workers, bool(more)] = _records(proc.stdout)
+    assert [Path(r["name"]).name for r in runs[1, False]] == ["p0.png", "p1.png", "p2.png", "p2b.jpg", "p3.png",
+                                                              "p4.png"]
+    assert runs[3, False] == runs[1, False]
+    assert runs[3, True] == runs[1, False]  # worker processes: the same records, the unreadable one in its place
     proc = subprocess.run([sys.executable, "-m", "usvc.cli", *base, "--workers", "0"], cwd=REPO,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and proc.stdout == ""

@@ -170,8 +170,17 @@ def _localize(args: argparse.Namespace) -> int:
         except UsvcError as err:
             return err
 
-    for ((name, path), found), estimate in zip(zip(photos, cameras),
-                                                in_order(answer, zip(photos, cameras, decoded), args.workers)):
+    if args.processes and args.workers > 1:  # each process reads its photos as answer() reads them
+        from usvc.relocalize.photo_processes import in_processes
+
+        work = (found if isinstance(found, UnreadablePhoto) else
+                (path, found[0], {"intrinsics_source": found[2]} if found[2] else {})
+                for (_, path), found in zip(photos, cameras))
+        estimates = in_processes(relocalizer.args, work, args.workers,
+                                 threads_per_query(args.threads, args.workers), errors="return")
+    else:
+        estimates = in_order(answer, zip(photos, cameras, decoded), args.workers)
+    for ((name, path), found), estimate in zip(zip(photos, cameras), estimates):
         bar.update()
         if isinstance(estimate, UsvcError):
             errors += 1
@@ -286,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="photos localized at a time, each with --threads divided among them (default 1): "
                           "for many photos on many cores, or with the network on a GPU; same answers as one "
                           "at a time with that many threads")
+    loc.add_argument("--processes", action="store_true",
+                     help="with --workers N: N worker processes instead of threads (each loads the map, in "
+                          "seconds, then shares no interpreter lock: for folders of hundreds of photos)")
     loc.add_argument("--json-list", action="store_true",
                      help="print one JSON list at the end instead of one JSON object per line")
     loc.add_argument("--out-dir", help="also write the results here (files replaced atomically at the end)")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,7 @@ from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
 from usvc.relocalize.query_features import choose_sift
 from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
+from usvc.relocalize.photo_processes import RelocalizerArgs, in_processes
 from usvc.relocalize.query_cores import for_network, query_split
 from usvc.relocalize.refinement import RefineOptions, refine_pose
 from usvc.relocalize.verified_matching import HeldKeypointDescriptors, observation_descriptors
@@ -116,6 +118,12 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                             "was trained at): not a map the train stage wrote")
         self.short_side = int(self.metadata["short_side"])  # checked on load: an integer in range
         self.map_path = Path(map_path)
+        # what a worker process needs to make the same relocalizer (`localize_many(processes=True)`): the
+        # precision as resolved here, since `auto` times the products (a process starting beside others could
+        # find them otherwise)
+        self.args = RelocalizerArgs(self.map_path, None if encoder_weights is None else Path(encoder_weights),
+                                    replace(self.options, precision=self.precision), device, seed,
+                                    None if landmarks is None else Path(landmarks))
         spread = self.metadata.get("focal_range")  # checked on load; maps before it have none
         self.focal_range = (float(spread[0]), float(spread[1])) if spread is not None else None
         # The map judges a given focal length only if it tells its own views' within the tolerance
@@ -170,13 +178,20 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                             "(format version 1): rebuild them with the landmarks stage")
 
     def localize_many(self, photos: Iterable[tuple[np.ndarray | str | Path | Photo, Intrinsics | None]],
-                      workers: int = 1) -> Iterator[PoseEstimate]:
+                      workers: int = 1, processes: bool = False) -> Iterator[PoseEstimate]:
         """`localize` of each (image, intrinsics) pair, `workers` photos at a time, the answers in the
         photos' order (`usvc.relocalize.photo_batch`). With several workers each query gets torch's
         current thread count divided among them, and the answers are bit for bit those of the photos
         localized one after the other with that many threads; for a folder on a machine with many
-        cores, or with the network on a GPU."""
+        cores, or with the network on a GPU. `processes`: the workers are processes, each with this
+        relocalizer's own copy (`usvc.relocalize.photo_processes`: they start in seconds, then share
+        no interpreter lock); a script that uses them needs the `if __name__ == "__main__":` guard
+        that Python's spawned processes ask of it."""
         workers = check_workers(workers)
+        if processes and workers > 1:
+            items = ((image, intrinsics, {}) for image, intrinsics in photos)
+            yield from in_processes(self.args, items, workers, threads_per_query(torch.get_num_threads(), workers))
+            return
         if workers == 1:
             for image, intrinsics in photos:
                 yield self.localize(image, intrinsics)
