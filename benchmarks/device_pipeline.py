@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from _report import write_report  # noqa: E402
 from pipeline_time import read_json, run_stage, timing_record  # noqa: E402
-from step_profile import profile_scene  # noqa: E402
+from step_profile import device_or_exit, profile_scene  # noqa: E402
 
 from usvc.core.artifact_names import MAP_PT  # noqa: E402
 from usvc.pipeline.paths import ScenePaths  # noqa: E402
@@ -163,13 +163,7 @@ def main() -> None:
     parser.add_argument("--no-repeat", action="store_true", help="skip training the map a second time")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every stage (after --)")
     args = parser.parse_args()
-    from usvc.core.device import resolve_device
-    from usvc.core.errors import UsvcError
-
-    try:
-        device = resolve_device(args.device)
-    except UsvcError as exc:
-        raise SystemExit(str(exc)) from None
+    device = device_or_exit(args.device)
     if args.first not in STAGES[:2] and args.work is None:
         raise SystemExit(f"--from {args.first} needs --work: the folder that holds the earlier stages' outputs")
     env = dict(os.environ)

@@ -132,6 +132,17 @@ def profile_scene(data: Path, scene: str, device: str, overrides: list[str], ite
     return records
 
 
+def device_or_exit(setting: str) -> str:
+    """The torch device `setting` resolves to, or the script's exit with the one line saying why not."""
+    from usvc.core.device import resolve_device
+    from usvc.core.errors import UsvcError
+
+    try:
+        return resolve_device(setting)
+    except UsvcError as exc:
+        raise SystemExit(str(exc)) from None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="mini")
@@ -141,13 +152,7 @@ def main() -> None:
     parser.add_argument("--name", help="report name (default: step_profile_<device>_<scene>)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = parser.parse_args()
-    from usvc.core.device import resolve_device
-    from usvc.core.errors import UsvcError
-
-    try:
-        device = resolve_device(args.device)
-    except UsvcError as exc:
-        raise SystemExit(str(exc)) from None
+    device = device_or_exit(args.device)
     if args.iterations < 1:
         raise SystemExit(f"--iterations {args.iterations}: must be >= 1")
     records = profile_scene(args.data.resolve(), args.scene, device, args.overrides, args.iterations)
