@@ -63,15 +63,15 @@ def test_a_photos_failure_is_raised_at_its_turn_or_handed_out(mapped, tmp_path: 
     got.close()
     known = UsvcError("already known to be unreadable")
     items = [(photos[0], None, {}), known, (bad, None, {}), (photos[1], None, {})]
-    out = list(in_processes(reloc.args, items, 2, 1, errors="return"))
+    out = list(in_processes(Relocalizer, reloc.args, items, 2, 1, errors="return"))
     assert out[1] is known and isinstance(out[2], UsvcError) and "cannot decode image" in str(out[2])
     assert not isinstance(out[0], UsvcError) and not isinstance(out[3], UsvcError)
     with pytest.raises(ValueError, match="errors must be"):
-        next(in_processes(reloc.args, items, 2, 1, errors="ignore"))
+        next(in_processes(Relocalizer, reloc.args, items, 2, 1, errors="ignore"))
 
 
 def test_a_worker_that_cannot_start_is_one_clear_error(mapped, tmp_path: Path):
     reloc, photos = mapped
     gone = replace(reloc.args, map_path=tmp_path / "missing.map.pt")
     with pytest.raises(UsvcError, match="a worker process stopped"):
-        list(in_processes(gone, [(photos[0], None, {})], 2, 1))
+        list(in_processes(Relocalizer, gone, [(photos[0], None, {})], 2, 1))

@@ -176,7 +176,7 @@ def _localize(args: argparse.Namespace) -> int:
         work = (found if isinstance(found, UnreadablePhoto) else
                 (path, found[0], {"intrinsics_source": found[2]} if found[2] else {})
                 for (_, path), found in zip(photos, cameras))
-        estimates = in_processes(relocalizer.args, work, args.workers,
+        estimates = in_processes(Relocalizer, relocalizer.args, work, args.workers,
                                  threads_per_query(args.threads, args.workers), errors="return")
     else:
         estimates = in_order(answer, zip(photos, cameras, decoded), args.workers)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -28,6 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from usvc.core.errors import UsvcError
+from usvc.relocalize.feature_job import inline_jobs
+from usvc.relocalize.photo_batch import query_threads
 
 _WORKER: Any = None  # the worker process's relocalizer, made once by `_start`
 _POOLS = contextlib.ExitStack()  # the worker process's thread pool settings, held while it lives
@@ -46,24 +48,18 @@ class RelocalizerArgs:
     landmarks: Path | None
 
 
-def _start(args: RelocalizerArgs, threads: int) -> None:
+def _start(make: Callable[..., Any], args: RelocalizerArgs, threads: int) -> None:
     """A worker's start: its thread pools (torch's, OpenCV's and BLAS's, for the process's life),
-    then its relocalizer."""
+    then its relocalizer (`make`: the class, sent by name)."""
     global _WORKER
-    import usvc  # noqa: F401  (OpenMP's wait policy before torch loads)
-    from usvc.relocalize.photo_batch import query_threads
-    from usvc.relocalize.relocalizer import Relocalizer
-
     _POOLS.enter_context(query_threads(threads))
-    _WORKER = Relocalizer(args.map_path, args.encoder_weights, args.options, device=args.device, seed=args.seed,
-                          landmarks=args.landmarks)
+    _WORKER = make(args.map_path, args.encoder_weights, args.options, device=args.device, seed=args.seed,
+                   landmarks=args.landmarks)
 
 
 def _localize(item: tuple[Any, Any, dict]) -> Any:
     """One photo's query, its side work in place (as a worker thread runs it: the process's other
     workers have the other cores); a UsvcError (the photo's own failure) is returned, not raised."""
-    from usvc.relocalize.feature_job import inline_jobs
-
     image, intrinsics, kwargs = item
     try:
         with inline_jobs():
@@ -72,10 +68,12 @@ def _localize(item: tuple[Any, Any, dict]) -> Any:
         return err
 
 
-def in_processes(args: RelocalizerArgs, items: Iterable[tuple[Any, Any, dict] | UsvcError], workers: int,
-                 threads: int, errors: str = "raise") -> Iterator[Any]:
-    """`Relocalizer.localize(image, intrinsics, **kwargs)` of every item on `workers` spawned
-    processes of `threads` threads each, yielded in the items' order; at most 2 x workers photos
+def in_processes(make: Callable[..., Any], args: RelocalizerArgs,
+                 items: Iterable[tuple[Any, Any, dict] | UsvcError], workers: int, threads: int,
+                 errors: str = "raise") -> Iterator[Any]:
+    """`localize(image, intrinsics, **kwargs)` of every item by a relocalizer that `make` (the
+    `Relocalizer` class, sent by name) makes from `args` in each of `workers` spawned processes of
+    `threads` threads each, yielded in the items' order; at most 2 x workers photos
     are sent ahead of the one handed out. A photo's UsvcError (or an item that is one already: a
     photo known to be unreadable) is raised when its turn comes, or with `errors="return"` handed
     out in its place; a worker that cannot start (or dies) ends the run with one UsvcError."""
@@ -89,7 +87,7 @@ def in_processes(args: RelocalizerArgs, items: Iterable[tuple[Any, Any, dict] | 
 
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start,
-                             initargs=(args, threads)) as pool:
+                             initargs=(make, args, threads)) as pool:
         ahead: deque[Future | UsvcError] = deque()
 
         def next_out() -> Any:

@@ -190,7 +190,8 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         workers = check_workers(workers)
         if processes and workers > 1:
             items = ((image, intrinsics, {}) for image, intrinsics in photos)
-            yield from in_processes(self.args, items, workers, threads_per_query(torch.get_num_threads(), workers))
+            yield from in_processes(Relocalizer, self.args, items, workers,
+                                    threads_per_query(torch.get_num_threads(), workers))
             return
         if workers == 1:
             for image, intrinsics in photos:
