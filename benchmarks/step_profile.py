@@ -45,17 +45,9 @@ def host_draw_ms(buf, opts, steps: int = 100) -> float:
     `steps` at a time: the cells' permutation, the bundle loss's keypoint groups picked in Python).
     The loop draws the next block while the device runs the queued one, so on a GPU this is hidden
     while it stays below the device's time a step."""
-    import numpy as np
-    import torch
+    from usvc.train.trainer import batch_draw
 
-    from usvc.train.group_sampler import GroupSampler
-    from usvc.train.trainer import _BatchDraw
-
-    sampler = None
-    if opts.bundle_weight > 0 and buf.has_keypoints:
-        sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch, opts.bundle_obs_per_group,
-                               np.random.default_rng([0, 2]))
-    draw = _BatchDraw(len(buf.features), opts.batch_size, torch.Generator().manual_seed(0), sampler)
+    draw = batch_draw(buf, opts, seed=0)
     start = time.perf_counter()
     draw.block(steps, "cpu")
     return 1e3 * (time.perf_counter() - start) / steps

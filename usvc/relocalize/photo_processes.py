@@ -8,8 +8,8 @@ machine with many cores, or with the network on a GPU, the threads can wait for 
 worker threads on a 16-core GPU machine gave 22 photos a second, 5.7 times one at a time; the lock
 is the first suspect there). Processes share nothing. The price is each process's start (Python,
 torch, the map: 2.2 s on a 2-core CPU, side by side), so they are for folders of hundreds of
-photos; on two cores they localize as many photos a second as two threads once started
-(docs/speed.md). Workers are spawned, never forked (torch's thread pools and CUDA do not survive a
+photos; on two cores they are no faster than two threads once started (mini the same, bird 8-15 %
+slower: docs/speed.md). Workers are spawned, never forked (torch's thread pools and CUDA do not survive a
 fork), with the precision the parent resolved; each photo goes to its worker as its path or its
 pixels, and its answer comes back as the same `PoseEstimate` the photo gets from a relocalizer of
 its own with that many threads, bit for bit.

@@ -149,6 +149,22 @@ class _BatchDraw:
         return block
 
 
+def batch_draw(buf: TrainingBuffer, opts: TrainOptions, seed: int) -> _BatchDraw:
+    """The batches `train_head` draws for `seed`: the cells' permutations and, with the bundle loss,
+    its keypoint groups (one clear error where the buffer has none to give)."""
+    sampler = None
+    if opts.bundle_weight > 0:
+        if not buf.has_keypoints:
+            raise UsvcError("train.bundle_weight > 0 (method=multiview) needs keypoint observations in the "
+                            "buffer; rebuild it with the buffer stage, or use method=single")
+        try:
+            sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch,
+                                   opts.bundle_obs_per_group, np.random.default_rng([seed, 2]))
+        except ValueError as exc:
+            raise UsvcError(f"bundle loss: {exc}") from exc
+    return _BatchDraw(len(buf.features), opts.batch_size, torch.Generator().manual_seed(seed), sampler)
+
+
 class _StepGraph:
     """One training step captured as a CUDA graph and replayed: its inputs are copied into the
     graph's own tensors first. Captured after a few steps run normally on a side stream (the
@@ -233,18 +249,9 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     if n < opts.batch_size:
         raise UsvcError(f"the buffer has {n} cells, fewer than one batch ({opts.batch_size}); "
                         "raise buffer.size or lower train.batch_size")
-    sampler = None
-    if opts.bundle_weight > 0:
-        if not buf.has_keypoints:
-            raise UsvcError("train.bundle_weight > 0 (method=multiview) needs keypoint observations in the "
-                            "buffer; rebuild it with the buffer stage, or use method=single")
-        try:
-            sampler = GroupSampler(buf.kp_id, buf.kp_view, opts.bundle_groups_per_batch,
-                                   opts.bundle_obs_per_group, np.random.default_rng([seed, 2]))
-        except ValueError as exc:
-            raise UsvcError(f"bundle loss: {exc}") from exc
+    draw = batch_draw(buf, opts, seed)
+    sampler = draw.sampler
     torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
     head = Head(in_channels=buf.features.shape[1], width=head_width, num_blocks=head_blocks)
     head.set_scene_center(mapping_center(buf))
     head.to(device).train()
@@ -266,7 +273,6 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
 
     optim = _optimizer(opts, head.parameters(), device)
     lrs, beta1s = schedule_values(opts)
-    draw = _BatchDraw(n, opts.batch_size, gen, sampler)
     steps = torch.full((opts.iterations, 6), float("nan"), device=device)  # per-step statistics, on the device
     history = np.full((opts.iterations, 6), np.nan)
     validation: list[dict[str, float]] = []
