@@ -182,3 +182,22 @@ def test_device_check_runs_existing_benchmarks_within_one_call(quick):
     marked = sorted(p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_*.py")
                     if cuda_mark.search(p.read_text()))
     assert sorted(w for w in lines[0].split() if w.startswith("tests/")) == marked and marked
+
+
+def test_localize_cli_runs_the_command_line_a_user_types(monkeypatch):
+    """localize_cli.py times `usvc localize` itself: the command it builds parses as the CLI's own
+    (the map, the photos in order, the intrinsics to the precision the photos' were given), and a
+    command that fails stops the benchmark with the command and its error rather than a figure."""
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from localize_cli import localize_command, run_command, summary
+
+    from usvc.cli import build_parser
+
+    cmd = localize_command(Path("m/map.pt"), (754.2609, 754.2609, 640.0, 360.0), [Path("b.jpg"), Path("a.jpg")], 2)
+    assert cmd[:3] == [sys.executable, "-m", "usvc.cli"]
+    args = build_parser().parse_args(cmd[3:])
+    assert (args.threads, args.map, args.photos) == ("2", "m/map.pt", ["b.jpg", "a.jpg"])
+    assert args.intrinsics == pytest.approx([754.261, 754.261, 640.0, 360.0], abs=1e-3)
+    with pytest.raises(SystemExit, match="exit 2"):
+        run_command([sys.executable, "-m", "usvc.cli", "localize", "--no-such-option"])
+    assert summary([0.3, 0.1, 0.2]) == {"median": 0.2, "max": 0.3, "min": 0.1, "n": 3}
