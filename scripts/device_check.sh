@@ -2,11 +2,14 @@
 # One call on a GPU machine that measures usvc's GPU path: the CUDA tests, the bundled scene from
 # scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
 # training step's profile), a 640 x 480 query, a folder of photos (worker threads and worker
-# processes), and the training step at a larger batch. Each step has its own time limit (together
-# under ten minutes) and runs even when one before it failed; `steps.txt` says how each ended.
+# processes), and the training step at a larger batch; with --real NAME, a real scene's every stage
+# from its photos too (data/raw/NAME carried beside the checkout: bird's 2 MB fit). Each step has its
+# own time limit, cut to what is left of one budget (--budget, 570 s: the steps fit one ten-minute
+# call whatever they take), and runs even when one before it failed; `steps.txt` says how each ended.
 #
 #   bash scripts/device_wheels.sh            # here, with network: the wheels such a machine lacks
 #   bash scripts/device_check.sh             # there (the checkout and .whl/ carried beside it)
+#   bash scripts/device_check.sh --real bird # the same, then bird from its photos (carry data/raw/bird)
 #   bash scripts/device_check.sh --quick     # anywhere, in minutes: the same steps, short (CPU too)
 #
 # Everything goes to $OUT (default results/device/): device.txt (the card, torch, COLMAP), steps.txt,
@@ -19,16 +22,31 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 wheels="$REPO/.whl"
 quick=0
 dry=0
+budget=""
+real=()
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --quick) quick=1 ;;
         --dry-run) dry=1 ;;
         --wheels) shift; wheels="${1:?--wheels needs a folder}" ;;
-        -h|--help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
-                   echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR]"; exit 0 ;;
+        --budget) shift; budget="${1:?--budget needs seconds}" ;;
+        --real) shift; real+=("${1:?--real needs a scene name}") ;;
+        -h|--help) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'
+                   echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR] [--budget S] [--real NAME]..."
+                   exit 0 ;;
         *) echo "error: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
+done
+[[ -z "$budget" ]] && budget=$([[ $quick == 1 ]] && echo 900 || echo 570)
+[[ "$budget" =~ ^[0-9]+$ && "$budget" -gt 0 ]] || { echo "error: --budget must be whole seconds > 0, got '$budget'" >&2; exit 2; }
+for name in "${real[@]}"; do
+    [[ "$name" =~ ^[A-Za-z0-9_-]+$ ]] || { echo "error: --real takes a scene name, got '$name'" >&2; exit 2; }
+    [[ -f "$REPO/conf/scene/$name.yaml" ]] || { echo "error: --real $name: no conf/scene/$name.yaml" >&2; exit 2; }
+    if [[ $dry == 0 && ! -d "$REPO/data/raw/$name" ]]; then
+        echo "error: --real $name: its photos are not in data/raw/$name (bash scripts/copy_shared_scene.sh $name, then carry data/raw/$name)" >&2
+        exit 2
+    fi
 done
 python="${PYTHON:-python}"
 out="${OUT:-$REPO/results/device}"
@@ -51,9 +69,19 @@ else
     add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
     add profile_8192 60 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --name step_profile_mini_batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
+# A real scene from its photos, every stage as `dvc repro` runs it (the training target's second
+# scene), with what is left of the budget: last, so that it never takes the others' time.
+for name in "${real[@]}"; do
+    if [[ $quick == 1 ]]; then
+        add "real_$name" 400 "$python benchmarks/device_pipeline.py --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0 -- train.iterations=30"
+    else
+        add "real_$name" 300 "$python benchmarks/device_pipeline.py --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0"
+    fi
+done
 
 if [[ $dry == 1 ]]; then
     for s in "${steps[@]}"; do IFS='|' read -r name limit cmd <<< "$s"; echo "$name ($limit s): $cmd"; done
+    echo "budget $budget s"
     exit 0
 fi
 
@@ -96,8 +124,15 @@ PY
 } > "$out/device.txt" 2>&1
 cat "$out/device.txt"
 
+began=$SECONDS
 for s in "${steps[@]}"; do
     IFS='|' read -r name limit cmd <<< "$s"
+    left=$((budget - (SECONDS - began)))
+    if (( left < 5 )); then
+        echo "$name: skipped, ${left} s left of the $budget s budget" | tee -a "$out/steps.txt"
+        continue
+    fi
+    (( left < limit )) && limit=$left
     start=$SECONDS
     # shellcheck disable=SC2086  (the command is a word list on purpose)
     timeout "$limit" $cmd > "$out/logs/$name.log" 2>&1

@@ -171,13 +171,18 @@ def test_device_check_runs_existing_benchmarks_within_one_call(quick):
     benchmark that exists, the steps' limits add up to under a call's ten minutes, and the CUDA
     tests it runs are the files that carry the `cuda` mark."""
     args = ["bash", str(REPO / "scripts" / "device_check.sh"), "--dry-run"] + (["--quick"] if quick else [])
-    lines = subprocess.run(args, capture_output=True, text=True, check=True, timeout=60).stdout.splitlines()
+    *lines, budget = subprocess.run(args, capture_output=True, text=True, check=True, timeout=60).stdout.splitlines()
     names = [line.split(" ")[0] for line in lines]
     assert names == ["pytest_cuda", "pipeline", "query", "folder", "profile_8192"]
     limits = [int(line.split("(")[1].split(" s)")[0]) for line in lines]
-    assert sum(limits) <= (900 if quick else 570)
+    assert sum(limits) <= int(budget.split()[1]) <= (900 if quick else 570)  # every step's limit is cut to the budget
     scripts = [word for line in lines for word in line.split() if word.startswith("benchmarks/")]
     assert len(scripts) == 4 and all((REPO / s).is_file() for s in scripts)
+    *with_bird, _ = subprocess.run(args + ["--real", "bird"], capture_output=True, text=True, check=True,
+                                   timeout=60).stdout.splitlines()
+    assert with_bird[:-1] == lines and with_bird[-1].startswith("real_bird (")  # last: it gets what is left
+    assert "benchmarks/device_pipeline.py" in with_bird[-1] and "--scene bird --work" in with_bird[-1]
+    assert "--from prepare" in with_bird[-1]
     cuda_mark = re.compile(r"pytest\.mark\.cuda")
     marked = sorted(p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_*.py")
                     if cuda_mark.search(p.read_text()))
@@ -201,3 +206,31 @@ def test_localize_cli_runs_the_command_line_a_user_types(monkeypatch):
     with pytest.raises(SystemExit, match="exit 2"):
         run_command([sys.executable, "-m", "usvc.cli", "localize", "--no-such-option"])
     assert summary([0.3, 0.1, 0.2]) == {"median": 0.2, "max": 0.3, "min": 0.1, "n": 3}
+
+
+def test_device_check_cuts_every_step_to_what_is_left_of_its_budget(tmp_path):
+    """One call on a lent machine has a hard limit: each step runs at most for what the budget has
+    left, and a step with next to nothing left is skipped and said so (here every step is a command
+    that takes 3 s, in a budget of 7 s: the first runs, the others are skipped); a real scene whose
+    photos are missing stops the script before anything runs, with the command that brings them."""
+    fake = tmp_path / "python"
+    fake.write_text('#!/bin/sh\n[ "$1" = "-" ] && exit 0\nsleep 3\n')
+    fake.chmod(0o755)
+    env = {**os.environ, "PYTHON": str(fake), "OUT": str(tmp_path / "out"), "USVC_DEVICE_WORK": str(tmp_path / "w")}
+    script = str(REPO / "scripts" / "device_check.sh")
+    proc = subprocess.run(["bash", script, "--budget", "7", "--wheels", str(tmp_path / "none")], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    steps = (tmp_path / "out" / "steps.txt").read_text().splitlines()
+    assert steps[0].startswith("pytest_cuda: exit 0 in ") and steps[0].endswith("(limit 7 s)")
+    assert [line.split(":")[0] for line in steps[1:]] == ["pipeline", "query", "folder", "profile_8192"]
+    assert all("skipped" in line and "of the 7 s budget" in line for line in steps[1:])
+    checkout = tmp_path / "checkout"  # a checkout with a scene declared and its photos not there
+    (checkout / "scripts").mkdir(parents=True)
+    (checkout / "conf" / "scene").mkdir(parents=True)
+    (checkout / "conf" / "scene" / "kitchen.yaml").write_text("defaults: [base_scene, _self_]\nname: kitchen\n")
+    (checkout / "scripts" / "device_check.sh").write_text(Path(script).read_text())
+    missing = subprocess.run(["bash", str(checkout / "scripts" / "device_check.sh"), "--real", "kitchen"], env=env,
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "copy_shared_scene.sh kitchen" in missing.stderr
+    assert not (tmp_path / "out" / "logs" / "real_kitchen.log").exists()
