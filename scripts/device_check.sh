@@ -3,9 +3,10 @@
 # scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
 # training step's profile), a 640 x 480 query, a folder of photos (worker threads and worker
 # processes), and the training step at a larger batch; with --real NAME, a real scene's every stage
-# from its photos too (data/raw/NAME carried beside the checkout: bird's 2 MB fit). Each step has its
-# own time limit, cut to what is left of one budget (--budget, 570 s: the steps fit one ten-minute
-# call whatever they take), and runs even when one before it failed; `steps.txt` says how each ended.
+# from its photos too (data/raw/NAME carried beside the checkout: bird's 1.6 MB fit). Each step has its
+# own time limit, cut to what is left of one budget counted from the start (--budget, 570 s: the
+# whole script fits one ten-minute call whatever each step takes), and runs even when one before
+# it failed; `steps.txt` says how each ended.
 #
 #   bash scripts/device_wheels.sh            # here, with network: the wheels such a machine lacks
 #   bash scripts/device_check.sh             # there (the checkout and .whl/ carried beside it)
@@ -31,7 +32,7 @@ while [[ $# -gt 0 ]]; do
         --wheels) shift; wheels="${1:?--wheels needs a folder}" ;;
         --budget) shift; budget="${1:?--budget needs seconds}" ;;
         --real) shift; real+=("${1:?--real needs a scene name}") ;;
-        -h|--help) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'
+        -h|--help) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
                    echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR] [--budget S] [--real NAME]..."
                    exit 0 ;;
         *) echo "error: unknown argument $1" >&2; exit 2 ;;
@@ -124,7 +125,7 @@ PY
 } > "$out/device.txt" 2>&1
 cat "$out/device.txt"
 
-began=$SECONDS
+began=0  # the budget counts from the script's start: the install and device.txt are in it
 for s in "${steps[@]}"; do
     IFS='|' read -r name limit cmd <<< "$s"
     left=$((budget - (SECONDS - began)))
