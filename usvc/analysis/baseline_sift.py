@@ -23,11 +23,11 @@ import pycolmap
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame, Scene
+from usvc.sfm.pair_matching import match_listed_pairs
 from usvc.sfm.posing import register_query
 from usvc.sfm.reconstruction import (
     SfmOptions,
     extract,
-    matching_kwargs,
     pipeline_options,
     pose_pairs,
     posed_reconstruction,
@@ -45,17 +45,6 @@ class BaselinePose:
     inliers: int
     seconds: float
     why: str  # empty when localized
-
-
-def _pairs_file(path: Path, pairs: list[tuple[str, str]]) -> Path:
-    path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-    return path
-
-
-def _match_pairs(db_path: Path, pairs_file: Path, opts: SfmOptions) -> None:
-    po = pycolmap.ImportedPairingOptions()
-    po.match_list_path = pairs_file
-    pycolmap.match_image_pairs(db_path, pairing_options=po, **matching_kwargs(opts))
 
 
 def _mapping_pairs(mapping: list[Frame], opts: SfmOptions) -> list[tuple[str, str]]:
@@ -104,7 +93,7 @@ def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOp
 
     t0 = time.perf_counter()
     if model is None:
-        _match_pairs(db_path, _pairs_file(work_dir / "mapping_pairs.txt", _mapping_pairs(mapping, opts)), opts)
+        match_listed_pairs(db_path, _mapping_pairs(mapping, opts), work_dir / "mapping_pairs.txt", opts.seed)
         model_dir = work_dir / "model"
         model_dir.mkdir()
         rec = pycolmap.triangulate_points(posed_reconstruction(mapping, db_path), db_path, image_dir, model_dir,
@@ -122,7 +111,7 @@ def sift_pnp_baseline(scene: Scene, image_dir: Path, work_dir: Path, opts: SfmOp
 
     query_pairs = [(q.name, m.name) for q in queries for m in mapping]
     t0 = time.perf_counter()
-    _match_pairs(db_path, _pairs_file(work_dir / "query_pairs.txt", query_pairs), opts)
+    match_listed_pairs(db_path, query_pairs, work_dir / "query_pairs.txt", opts.seed)
     match_s = (time.perf_counter() - t0) / len(queries)
     timings["match_s_per_query"] = match_s
 

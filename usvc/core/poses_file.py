@@ -1,7 +1,14 @@
 """poses.txt: one world-to-camera pose per localized query, `name qw qx qy qz tx ty tz` a line
-(OpenCV axes, Hamilton unit quaternion), under a `#` header line."""
+(OpenCV axes, Hamilton unit quaternion), under a `#` header line.
+
+A name is written as it is (spaces inside it included: the name is everything before the last
+seven fields), unless a reader would take it for something else: a name that starts with `#` or
+`"`, starts or ends with white space, or holds a line break is written as a JSON string
+(`"#0012.jpg" 1.0 0.0 ...`)."""
 
 from __future__ import annotations
+
+import json
 
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,14 +31,34 @@ def write_poses_txt(path: Path | str, names: Sequence[str], R: np.ndarray, t: np
         raise UsvcError(f"{path}: {len(names)} names, {len(R)} rotations and {len(t)} translations")
     lines = [POSES_HEADER]
     for name, Ri, ti in zip(names, R, t):
-        if not name or name != name.strip() or "\n" in name or "\r" in name or name.startswith("#"):
-            raise UsvcError(f"{path}: query name {name!r} cannot be written on one line")
+        if not name:
+            raise UsvcError(f"{path}: a query has an empty name")
         if not (np.all(np.isfinite(Ri)) and np.all(np.isfinite(ti))):
             raise UsvcError(f"{path}: pose of {name!r} is not finite")
         values = np.concatenate([matrix_to_quat_wxyz(Ri), ti])
-        lines.append(" ".join([name, *(repr(float(v)) for v in values)]))
+        lines.append(" ".join([_written_name(name), *(repr(float(v)) for v in values)]))
     with atomic_file(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _written_name(name: str) -> str:
+    """The name as a line holds it: as it is, or as a JSON string where a reader would misread it."""
+    plain = name == name.strip() and not name.startswith(("#", '"')) and len(name.splitlines()) == 1 \
+        and name.splitlines()[0] == name
+    return name if plain else json.dumps(name)  # ASCII: no character a line reader splits at
+
+
+def _split_line(line: str) -> tuple[str, list[str]] | None:
+    """(name, the seven value fields) of a pose line, or None when it does not have that shape."""
+    if line.startswith('"'):
+        try:
+            name, end = json.JSONDecoder().raw_decode(line)
+        except json.JSONDecodeError:
+            return None
+        fields = line[end:].split()
+        return (name, fields) if isinstance(name, str) and len(fields) == 7 and line[end:end + 1].isspace() else None
+    fields = line.rsplit(maxsplit=7)
+    return (fields[0], fields[1:]) if len(fields) == 8 else None
 
 
 def read_poses_txt(path: Path | str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -41,7 +68,7 @@ def read_poses_txt(path: Path | str) -> dict[str, tuple[np.ndarray, np.ndarray]]
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise UsvcError(f"{path}: cannot read poses file ({e.strerror or e})") from e
     poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -50,12 +77,12 @@ def read_poses_txt(path: Path | str) -> dict[str, tuple[np.ndarray, np.ndarray]]
         if not line or line.startswith("#"):
             continue
         where = f"{path}:{lineno}"
-        fields = line.rsplit(maxsplit=7)
-        if len(fields) != 8:
+        split = _split_line(line)
+        if split is None:
             raise UsvcError(f"{where}: expected 'name qw qx qy qz tx ty tz', got {line!r}")
-        name = fields[0]
+        name, fields = split
         try:
-            values = np.array([float(v) for v in fields[1:]])
+            values = np.array([float(v) for v in fields])
         except ValueError:
             raise UsvcError(f"{where}: non-numeric pose value in {line!r}") from None
         if not np.all(np.isfinite(values)):

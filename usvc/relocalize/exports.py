@@ -1,5 +1,9 @@
-"""Localized photos as files other tools open: JSON lines, poses.txt, a COLMAP text model and
+"""Localized photos as files other tools open: JSON lines, poses.txt, a COLMAP model and
 nerfstudio's transforms.json.
+
+The COLMAP model is COLMAP's text format (cameras.txt, images.txt, points3D.txt) when every photo
+name fits it, and its binary format (cameras.bin, images.bin, points3D.bin, rigs.bin, frames.bin)
+when a name holds white space, which the text format cuts at.
 
 Poses are world-to-camera (R, t) in OpenCV axes, as everywhere in usvc. :func:`export` renders
 and checks every requested file before it writes any, and writes each one atomically, so a
@@ -10,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,9 +46,12 @@ class Posed:
     t: np.ndarray
 
 
-def _write_text(path: Path, text: str) -> Path:
+def _write_text(path: Path, text: str | bytes) -> Path:
     with atomic_file(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        if isinstance(text, bytes):
+            tmp.write_bytes(text)
+        else:
+            tmp.write_text(text, encoding="utf-8")
     return path
 
 
@@ -76,12 +84,35 @@ def colmap_names(paths: Sequence[Path]) -> list[str]:
     except ValueError:  # Windows: photos on different drives
         raise UsvcError("a COLMAP model needs its photos under one folder; these are on different drives") from None
     names = [p.relative_to(root).as_posix() for p in resolved]
-    for name in names:
-        if any(c.isspace() for c in name):
-            raise UsvcError(f"COLMAP image names cannot contain white space: {name!r} (in {root})")
     if len(set(names)) != len(names):
         raise UsvcError(f"COLMAP image names must be unique; a photo is given twice (in {root})")
     return names
+
+
+def text_holds(names: Sequence[str]) -> bool:
+    """Whether COLMAP's text model holds these image names (it cuts a name at white space)."""
+    return not any(c.isspace() for name in names for c in name)
+
+
+def colmap_binary(items: Sequence[Posed]) -> dict[str, bytes]:
+    """COLMAP's binary model of the photos (any image name), file name -> bytes."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    camera_ids: dict[tuple[Any, ...], int] = {}
+    for image_id, (item, name) in enumerate(zip(items, colmap_names([i.path for i in items])), start=1):
+        c = item.camera
+        key = (c.model, c.width, c.height, *(float(v) for v in c.params))
+        if key not in camera_ids:
+            camera_ids[key] = len(camera_ids) + 1
+            rec.add_camera_with_trivial_rig(pycolmap.Camera(model=c.model, width=c.width, height=c.height,
+                                                            params=list(c.params), camera_id=camera_ids[key]))
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(item.R, dtype=np.float64)),
+                                np.asarray(item.t, dtype=np.float64).reshape(3))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=camera_ids[key], image_id=image_id), pose)
+    with tempfile.TemporaryDirectory(prefix="usvc-colmap-") as folder:
+        rec.write_binary(folder)
+        return {p.name: p.read_bytes() for p in sorted(Path(folder).iterdir())}
 
 
 def colmap_texts(items: Sequence[Posed]) -> dict[str, str]:
@@ -159,15 +190,17 @@ def write_poses(path: Path, items: Sequence[Posed]) -> Path:
 
 def export(out_dir: Path, formats: Sequence[str], records: Sequence[Mapping[str, Any]],
            items: Sequence[Posed]) -> list[Path]:
-    """Write the requested formats into ``out_dir``: queries.jsonl (all records), poses.txt,
-    cameras.txt + images.txt + points3D.txt and transforms.json (the localized photos only)."""
+    """Write the requested formats into ``out_dir``: queries.jsonl (all records), poses.txt, the
+    COLMAP model (text, or binary for names with white space) and transforms.json (the localized
+    photos only)."""
     out_dir = Path(out_dir)
     check_names(formats, [i.name for i in items], [i.path for i in items])
-    texts: dict[Path, str] = {}  # rendered (and so checked) before anything is written
+    texts: dict[Path, str | bytes] = {}  # rendered (and so checked) before anything is written
     if "jsonl" in formats:
         texts[out_dir / JSONL_FILE] = jsonl_text(records)
     if "colmap" in formats:
-        texts.update({out_dir / name: text for name, text in colmap_texts(items).items()})
+        model = colmap_texts(items) if text_holds(colmap_names([i.path for i in items])) else colmap_binary(items)
+        texts.update({out_dir / name: text for name, text in model.items()})
     if "nerfstudio" in formats:
         texts[out_dir / TRANSFORMS_FILE] = transforms_json_text(items, out_dir)
     written = [write_poses(out_dir / POSES_TXT, items)] if "poses" in formats else []

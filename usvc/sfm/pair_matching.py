@@ -11,6 +11,12 @@ that one thread gives. The first chunk runs in this process and every other in a
 own: two pycolmap matchers running at once in one process now and then dropped part of a pair's
 matches (mini's 1,770 pairs: one pair with 175 matches instead of 277, about one run in ten),
 which matchers in separate processes cannot do to each other.
+
+COLMAP reads a pair list as text, cutting each line at its first space and skipping a line that
+starts with `#`, so a photo named `IMG (1).jpg` or `#12.jpg` cannot be named there. While pairs
+are matched, every image of the database goes by an alias made of its id (`aliased_names`): the
+list names aliases only, the matches (keyed by image ids) are the same, and the names are put back
+afterwards. Every chunk's count of matched pairs is checked, the one in this process too.
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pycolmap
@@ -78,9 +86,54 @@ def _match_file(db_path: Path, pairs_file: Path, seed: int) -> None:
     pycolmap.match_image_pairs(db_path, pairing_options=po, **colmap_matching(seed))
 
 
-def _write_pairs(pairs: list[tuple[str, str]], pairs_file: Path) -> Path:
-    pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+_ALIAS = "usvc-image-{}"  # no space, no leading '#': a name COLMAP's pair list can hold
+
+
+@contextmanager
+def aliased_names(db_path: Path) -> Iterator[dict[str, str]]:
+    """Every image of the database renamed to an alias of its id while the block runs (yields
+    {name: alias}); the names are put back when it ends, however it ends."""
+    con = sqlite3.connect(db_path)
+    try:
+        rows = con.execute("SELECT image_id, name FROM images").fetchall()
+        aliases = {name: _ALIAS.format(image_id) for image_id, name in rows}
+        clash = sorted(set(aliases) & set(aliases.values()))
+        if clash:  # a photo named like an alias: renaming one onto the other would break the unique names
+            raise ValueError(f"photo name {clash[0]!r} is reserved for matching; rename that photo")
+        with con:
+            con.execute("UPDATE images SET name = ? || image_id", (_ALIAS.format(""),))
+    finally:
+        con.close()
+    try:
+        yield aliases
+    finally:
+        con = sqlite3.connect(db_path)
+        try:
+            with con:
+                con.executemany("UPDATE images SET name = ? WHERE image_id = ?", [(n, i) for i, n in rows])
+        finally:
+            con.close()
+
+
+def _write_pairs(pairs: list[tuple[str, str]], pairs_file: Path, aliases: dict[str, str]) -> Path:
+    pairs_file.write_text("".join(f"{aliases[a]} {aliases[b]}\n" for a, b in pairs))
     return pairs_file
+
+
+def match_listed_pairs(db_path: Path, pairs: list[tuple[str, str]], pairs_file: Path, seed: int) -> None:
+    """Match and verify `pairs` (image names, any characters) into `db_path` in this process, on one
+    matcher thread (`colmap_matching(seed)`); `pairs_file` is a scratch path for COLMAP's list. Raises
+    when COLMAP left any pair out."""
+    before = _matched_pairs(db_path)
+    with aliased_names(db_path) as aliases:
+        _match_file(db_path, _write_pairs(pairs, pairs_file, aliases), seed)
+    _check_count(db_path, _matched_pairs(db_path) - before, len(pairs))
+    pairs_file.unlink(missing_ok=True)
+
+
+def _check_count(db_path: Path, matched: int, expected: int) -> None:
+    if matched != expected:
+        raise RuntimeError(f"COLMAP matched {matched} of {expected} image pairs into {db_path}")
 
 
 def _matched_pairs(db_path: Path) -> int:
@@ -109,11 +162,19 @@ def match_pairs(db_path: Path, pairs: list[tuple[str, str]], work_dir: Path, see
     `threads` chunks side by side, one pycolmap matcher thread each (`colmap_matching(seed)`): the
     first in this process, every other in a process of its own (this module's `_main`); the same
     rows whatever `threads` is."""
+    with aliased_names(db_path) as aliases:
+        _match_chunks(db_path, pairs, aliases, work_dir, seed, threads)
+
+
+def _match_chunks(db_path: Path, pairs: list[tuple[str, str]], aliases: dict[str, str], work_dir: Path, seed: int,
+                  threads: int) -> None:
+    """match_pairs' work while the database's images go by `aliases`."""
     parts = chunks(pairs, threads)
     dbs = [db_path] + [work_dir / f"matching_part{k}.db" for k in range(1, len(parts))]
     for db in dbs[1:]:
         shutil.copyfile(db_path, db)
-    files = [_write_pairs(part, work_dir / f"matching_part{k}.txt") for k, part in enumerate(parts)]
+    files = [_write_pairs(part, work_dir / f"matching_part{k}.txt", aliases) for k, part in enumerate(parts)]
+    before = _matched_pairs(db_path)
     # The workers import this very file's package first, whatever the working directory holds.
     entry = f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r}); " \
             "from usvc.sfm.pair_matching import _main; _main(sys.argv[1:])"
@@ -124,7 +185,8 @@ def match_pairs(db_path: Path, pairs: list[tuple[str, str]], work_dir: Path, see
             workers.append(subprocess.Popen([sys.executable, "-c", entry, str(db), str(f), str(seed),
                                              str(int(pycolmap.logging.minloglevel))], stderr=stderr))
     try:
-        _match_file(dbs[0], files[0], seed)
+        if parts[0]:
+            _match_file(dbs[0], files[0], seed)
     finally:
         for worker in workers:
             worker.wait()
@@ -132,9 +194,9 @@ def match_pairs(db_path: Path, pairs: list[tuple[str, str]], work_dir: Path, see
         if worker.returncode != 0:
             last = log.read_text(errors="replace").strip().splitlines()[-1:] or ["no message"]
             raise RuntimeError(f"a matching process exited with status {worker.returncode}: {last[0]}")
+    _check_count(db_path, _matched_pairs(db_path) - before, len(parts[0]))
     for db, part in zip(dbs[1:], parts[1:]):
-        if _matched_pairs(db) != len(part):
-            raise RuntimeError(f"a matching process left {_matched_pairs(db)} of its {len(part)} pairs in {db}")
+        _check_count(db, _matched_pairs(db) - before, len(part))
     if len(parts) > 1:
         _merge(db_path, dbs[1:])
     for path in dbs[1:] + files + logs:
