@@ -433,3 +433,17 @@ def test_two_processes_of_one_name_at_once(checkout: Path, photos: Path) -> None
     assert registered(checkout, "kitchen")
     assert sorted(p.name for p in (checkout / "data/raw").iterdir()) == ["kitchen"]
 
+
+
+def test_a_failed_pipeline_says_the_scene_stays_and_how_to_go_on(checkout: Path, photos: Path, monkeypatch,
+                                                                   capsys) -> None:
+    """The scene is added before its pipeline runs: when a stage fails, `usvc map` says so and names
+    the command that goes on (a second `usvc map --name` would find the name taken)."""
+    monkeypatch.setattr(new_scene, "repro", lambda checkout, name: 1)
+    monkeypatch.chdir(checkout)
+    assert cli.main(["map", str(photos), "--name", "kitchen"]) == 1
+    err = capsys.readouterr().err
+    assert "the scene stays added" in err and "`dvc repro metrics@kitchen`" in err
+    assert (checkout / "conf" / "scene" / "kitchen.yaml").is_file()
+    assert map_cli(checkout, monkeypatch, photos, "--name", "kitchen") == 1
+    assert "already exists" in capsys.readouterr().err

@@ -73,6 +73,10 @@ def _map(args: argparse.Namespace) -> int:
     if code == 0:
         paths = ScenePaths(checkout / "data", checkout / "results", args.name)
         print(f"map: {paths.map_file}; metrics: {paths.metrics('metrics')}", file=sys.stderr)
+    else:  # the scene stays added: say how to go on with it, since `usvc map --name` again finds it taken
+        print(f"usvc map: the pipeline of scene {args.name!r} stopped (the reason is above); the scene stays added: "
+              f"fix the cause and run `dvc repro metrics@{args.name}`, or remove conf/scene/{args.name}.yaml, "
+              f"data/raw/{args.name} and its line in params.yaml to map it afresh", file=sys.stderr)
     return code
 
 
