@@ -1,5 +1,6 @@
 """Decoding photos into pixels: uint8 BGR with the EXIF orientation applied, whatever the format
-(JPEG, PNG, TIFF, 16-bit or floating-point samples), refusing oversized or truncated files in one line.
+(JPEG, PNG, TIFF, WebP, BMP, GIF's first frame, AVIF, HEIC/HEIF with pillow-heif installed; 16-bit or
+floating-point samples), refusing oversized or truncated files in one line.
 
 The header checks (the MAX_IMAGE_PIXELS limit of what a camera makes, EXIF orientation) are
 :mod:`usvc.core.exif`'s. A photo is decoded in full up to MAX_DECODE_PIXELS (300 MB of pixels);
@@ -10,6 +11,7 @@ decoder's own scaling, and says by how much, so that its intrinsics can be scale
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +25,20 @@ from usvc.core.exif import SWAPS_AXES, apply_orientation, open_checked, orientat
 
 MAX_DECODE_PIXELS = 100_000_000  # decoded in full up to this (300 MB of BGR); larger JPEGs reduced
 _REDUCED_FLAGS = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
+HEIF_SUFFIXES = (".heic", ".heif")
+NO_HEIF_DECODER = "no HEIC decoder installed (pip install pillow-heif)"
+
+
+@functools.cache
+def heif_decoder() -> bool:
+    """Whether HEIC/HEIF photos decode: only with pillow-heif installed (not a dependency), whose
+    opener is registered with Pillow by the first call."""
+    try:
+        from pillow_heif import register_heif_opener
+    except ImportError:
+        return False
+    register_heif_opener()
+    return True
 
 
 @dataclass(frozen=True)
@@ -135,6 +151,8 @@ def _header(path: Path) -> tuple[int, str | None, tuple[int, int]]:
     file and one over MAX_IMAGE_PIXELS; (1, None, (0, 0)) when Pillow cannot read the header."""
     if not path.is_file():
         raise SceneError(f"image not found: {path}")
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        heif_decoder()  # Pillow reads HEIC/HEIF once pillow-heif's opener is registered
     try:
         with open_checked(path) as img:
             return orientation_of(read_exif(img)), img.format, stored_size(img)
@@ -209,5 +227,7 @@ def read_image_bgr(path: str | Path) -> np.ndarray:
                 return _to_bgr(to_uint8(np.asarray(img), path), rgb=True)
             rgb = np.asarray(img.convert("RGB"))
     except (OSError, UnidentifiedImageError, ValueError) as e:
+        if path.suffix.lower() in HEIF_SUFFIXES and not heif_decoder():
+            raise SceneError(f"cannot decode image {path}: {NO_HEIF_DECODER}") from None
         raise SceneError(f"cannot decode image {path} ({e})") from None
     return np.ascontiguousarray(rgb[..., ::-1])

@@ -6,6 +6,8 @@ one line naming the flag."""
 from __future__ import annotations
 
 import argparse
+import functools
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,7 +19,12 @@ if TYPE_CHECKING:
 CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
                  "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
                  "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4", "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6"}
+# The photos a folder yields (extensions in any case), as usvc.core.images decodes them: by OpenCV,
+# else Pillow (a GIF's first frame); AVIF when Pillow has its decoder, HEIC/HEIF with pillow-heif.
+FOLDER_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp", ".gif")
+HEIF_SUFFIXES = (".heic", ".heif")  # as usvc.core.images.HEIF_SUFFIXES
 
+log = logging.getLogger(__name__)
 
 
 def is_number(text: str) -> bool:
@@ -40,18 +47,70 @@ def split_camera(tokens: list[str]) -> tuple[str, tuple[float, ...], list[str]]:
     return model, tuple(float(t) for t in rest[:count]), rest[count:]
 
 
-def expand_photos(args: list[str]) -> list[tuple[str, Path]]:
-    """(name, path) per photo: files as given, folders as their images sorted by name."""
-    from usvc.prepare.importers.common import IMAGE_SUFFIXES
+@functools.cache
+def folder_suffixes() -> tuple[str, ...]:
+    """The extensions (lower case) of the files a folder yields: FOLDER_SUFFIXES, with .avif when
+    Pillow decodes AVIF and .heic/.heif when pillow-heif is installed (found without importing
+    OpenCV, so that a wrong argument still fails at once)."""
+    import importlib.util
 
+    from PIL import features
+
+    try:
+        avif = bool(features.check("avif"))
+    except (ValueError, KeyError):  # a Pillow that does not know the feature
+        avif = False
+    heif = importlib.util.find_spec("pillow_heif") is not None
+    return FOLDER_SUFFIXES + (".avif",) * avif + HEIF_SUFFIXES * heif
+
+
+def skip_reason(path: Path) -> str | None:
+    """Why a folder's entry (not a subfolder) is not one of its photos; None when it is one."""
+    if not path.is_file():
+        return "not a regular file (a broken link?)"
+    suffix = path.suffix.lower()
+    if suffix in folder_suffixes():
+        return None
+    if suffix in HEIF_SUFFIXES:
+        from usvc.core.images import NO_HEIF_DECODER
+
+        return NO_HEIF_DECODER
+    what = f"{path.suffix} files" if path.suffix else "files without an extension"
+    return (f"{what} are not listed (a folder yields {' '.join(folder_suffixes())}, in any case; "
+            "name the file itself to try it)")
+
+
+def folder_photos(folder: Path) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """A folder's photos sorted by name, and the files it skips with the reason for each."""
+    photos: list[Path] = []
+    skipped: list[tuple[Path, str]] = []
+    for p in sorted(folder.iterdir(), key=lambda p: p.name):
+        if p.is_dir():
+            continue  # not recursive: a subfolder is not a file of this folder
+        why = skip_reason(p)
+        if why is None:
+            photos.append(p)
+        else:
+            skipped.append((p, why))
+    return photos, skipped
+
+
+def expand_photos(args: list[str]) -> list[tuple[str, Path]]:
+    """(name, path) per photo: files as given, folders as their photos sorted by name (the formats
+    of folder_suffixes, any case); each other file of a folder is named in one warning line with
+    why it is skipped (in the error instead when the folder has no photo)."""
     photos: list[tuple[str, Path]] = []
     for arg in args:
         path = Path(arg)
         if path.is_dir():
-            images = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
-                            key=lambda p: p.name)
+            images, skipped = folder_photos(path)
             if not images:
-                raise UsvcError(f"folder {arg} has no images ({' '.join(IMAGE_SUFFIXES)})")
+                listed = "; ".join(f"{p.name} ({why})" for p, why in skipped[:3])
+                more = f"; and {len(skipped) - 3} more" if len(skipped) > 3 else ""
+                raise UsvcError(f"folder {arg} has no images ({' '.join(folder_suffixes())}, in any case)"
+                                + (f"; skipped {listed}{more}" if skipped else ""))
+            for p, why in skipped:
+                log.warning("skipped %s: %s", p, why)
             photos += [(str(p), p) for p in images]
         elif path.is_file():
             photos.append((arg, path))
@@ -59,6 +118,10 @@ def expand_photos(args: list[str]) -> list[tuple[str, Path]]:
             raise UsvcError(f"image not found: {arg}")
     if not photos:
         raise UsvcError("no photos given")
+    if any(p.suffix.lower() in HEIF_SUFFIXES for _, p in photos):
+        from usvc.core.images import heif_decoder
+
+        heif_decoder()  # registers pillow-heif with Pillow, which reads the headers (photo_camera)
     return photos
 
 
@@ -138,6 +201,10 @@ def photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]]
         focal = None if args.focal is not None or args.intrinsics is not None or camera is not None \
             or args.no_exif else exif_focal_px(path)
     except (UsvcError, OSError, ValueError, Image.DecompressionBombError) as e:
+        from usvc.core.images import NO_HEIF_DECODER, heif_decoder
+
+        if path.suffix.lower() in HEIF_SUFFIXES and not heif_decoder():
+            raise UnreadablePhoto(f"cannot read image {path}: {NO_HEIF_DECODER}") from None
         raise UnreadablePhoto(str(e) if isinstance(e, UsvcError) else f"cannot read image {path} ({e})") from None
     params: tuple[float, ...]
     note = ""
