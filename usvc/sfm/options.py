@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from usvc.core.options import one_of, positive
 
 EXTRACTORS = ("colmap", "opencv")  # usvc/sfm/opencv_extraction.py
-MATCHING = ("auto", "exhaustive", "sequential", "poses")
+MATCHING = ("auto", "exhaustive", "sequential", "poses", "retrieval")
 RECONSTRUCTION = ("auto", "triangulate", "incremental")
 
 
@@ -18,9 +18,11 @@ class SfmOptions:
 
     max_num_features: int = 4096  # SIFT features per image
     extractor: str = "colmap"  # SIFT of the mapping images: colmap (COLMAP's own) | opencv (OpenCV's with COLMAP's detector settings, as the query extracts: 2-3x faster)
-    matching: str = "auto"  # auto: exhaustive up to exhaustive_max_images, else pose-guided (sequential without poses) | exhaustive | sequential | poses
+    matching: str = "auto"  # auto: exhaustive up to exhaustive_max_images, else pose-guided (retrieval without poses) | exhaustive | sequential | poses | retrieval
     exhaustive_max_images: int = 150  # matching=auto: exhaustive matching up to this many images
-    sequential_overlap: int = 10  # sequential matching: each image is matched with this many neighbours
+    sequential_overlap: int = 10  # sequential matching: each image is matched with this many neighbours (retrieval adds them too)
+    retrieval_neighbors: int = 20  # retrieval matching: each image with this many most similar images (VLAD on its SIFT)
+    retrieval_words: int = 64  # retrieval matching: visual words of the capture's own vocabulary
     pose_pairs_per_image: int = 20  # pose-guided matching: nearest cameras by centre and viewing direction
     reconstruction: str = "auto"  # auto: triangulate with the given poses held fixed, incremental when the scene has none | triangulate | incremental
     min_points: int = 100  # fewer triangulated points than this is a degenerate scene
@@ -32,4 +34,4 @@ class SfmOptions:
         out = one_of(self, "matching", MATCHING) + one_of(self, "reconstruction", RECONSTRUCTION)
         out += one_of(self, "extractor", EXTRACTORS)
         return out + positive(self, "max_num_features", "exhaustive_max_images", "sequential_overlap",
-                              "pose_pairs_per_image")
+                              "pose_pairs_per_image", "retrieval_neighbors", "retrieval_words")

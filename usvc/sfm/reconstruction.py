@@ -21,6 +21,7 @@ from usvc.sfm.opencv_extraction import write_opencv_features
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.pair_matching import colmap_matching, exhaustive_pairs, image_names, match_pairs
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
+from usvc.sfm.retrieval_pairs import retrieval_pairs
 
 log = logging.getLogger(__name__)
 
@@ -130,15 +131,16 @@ def matching_kwargs(opts: SfmOptions) -> dict:
 
 def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool,
           threads: int = 1) -> str:
-    """Match with the configured strategy; `auto` is exhaustive for small scenes. Exhaustive and
-    pose-guided pairs are matched on `threads` threads (see colmap_threads) with the bits of one
+    """Match with the configured strategy; `auto` is exhaustive for small scenes, else pose-guided
+    (with poses) or by retrieval (without: any file order). Exhaustive, pose-guided and retrieved
+    pairs are matched on `threads` threads (see colmap_threads) with the bits of one
     (pair_matching); sequential matching runs on one."""
     mode = opts.matching
     if mode == "auto":
         if len(frames) <= opts.exhaustive_max_images:
             mode = "exhaustive"
         else:
-            mode = "poses" if has_poses else "sequential"
+            mode = "poses" if has_poses else "retrieval"
     if mode == "poses" and not has_poses:
         raise SfmError("sfm.matching=poses needs a scene with poses")
     common = matching_kwargs(opts)
@@ -146,6 +148,10 @@ def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, 
     count = count if count > 0 else (os.cpu_count() or 1)
     if mode == "exhaustive":
         match_pairs(db_path, exhaustive_pairs(image_names(db_path)), work_dir, opts.seed, count)
+    elif mode == "retrieval":
+        pairs = retrieval_pairs(db_path, opts.retrieval_neighbors, opts.sequential_overlap, opts.retrieval_words,
+                                opts.seed)
+        match_pairs(db_path, pairs, work_dir, opts.seed, count)
     elif mode == "sequential":
         po = pycolmap.SequentialPairingOptions()
         po.overlap = opts.sequential_overlap
