@@ -44,6 +44,9 @@ def test_prepare_under_a_file_size_limit(raw, tmp_path, limit):
     errors = [line for line in out.splitlines() if "ERROR" in line]
     assert len(errors) == 1, out
     assert "File too large" in errors[0] or "cannot write" in errors[0], errors[0]
+    # the destination folder and the reason, never the temporary path (gone by the time it is read)
+    assert f"in {tmp_path / 'data' / 'mini' / 'prepared'}: File too large" in errors[0], errors[0]
+    assert ".tmp-" not in errors[0], errors[0]
     leftovers = [p for p in (tmp_path / "data").rglob("*")] if (tmp_path / "data").exists() else []
     assert all(p.is_dir() for p in leftovers), leftovers  # at most the empty scene folder
     assert not (tmp_path / "results" / "mini" / "prepared.json").exists()

@@ -160,3 +160,37 @@ def test_an_old_map_without_checksum_loads_with_one_note(tiny_map: tuple[Path, P
 
 
 # ------------------------------------------------------------------ 3. --max-error-px bound
+
+
+# ------------------------------------------------------------------ sizes the header declares
+
+def test_a_head_config_larger_than_the_stored_weights_is_refused_before_allocating(tiny_map: tuple[Path, Path],
+                                                                                     tmp_path: Path) -> None:
+    """head_config declares a head far larger than the weights the file holds (at the limits, 65536
+    wide and 64 blocks: terabytes): refused from the shapes of a head on the meta device, before any is
+    allocated. Sized here so that a build without the check allocates only ~100 MB before refusing."""
+    from usvc.model.map_file import load_head
+
+    huge = rewrite(tiny_map[0], tmp_path / "huge.map.pt",
+                   lambda p: p["head_config"].update(width=2048, num_blocks=2), checksum="recompute")
+    payload = read_map_header(huge)
+    with pytest.raises(ModelError, match=r"huge.map.pt: map head \(as its head_config declares it\) "
+                                         r"(keys do not match|entry \S+ has shape .* expected \[2048)"):
+        load_head(huge, payload["encoder"]["fingerprint"], payload)
+
+
+def test_a_map_torch_cannot_write_is_one_line_naming_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """torch's zip writer reports a full disk or a file-size limit as a RuntimeError without errno
+    ("unexpected pos 704 vs 598"): the train stage says which map and why, and leaves no file."""
+    from usvc.core.atomic import WriteError
+
+    def full(obj: object, f: object) -> None:
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704 vs 598")
+
+    monkeypatch.setattr(torch, "save", full)
+    encoder = Encoder(width=0.25)
+    final = tmp_path / "mini" / "map" / "map.pt"
+    with pytest.raises(WriteError, match=rf"cannot write {final}: torch's writer failed \(unexpected pos 704 vs 598\): "
+                                         "a full disk, a quota or a file-size limit\\?"):
+        save_map(final, Regressor(encoder, Head(in_channels=encoder.out_channels, width=8)), {"short_side": 120})
+    assert not (tmp_path / "mini").exists()

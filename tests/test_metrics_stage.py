@@ -430,3 +430,43 @@ def test_stage_without_poses_fails_in_one_line(inputs):
     assert not (inputs / "results/mini/metrics.json").exists()
     assert not (inputs / "results/mini/plots").exists()
 
+
+# --- a learned pose never computed (relocalize.prior=none) ------------------------------------
+
+def _nowhere(stats: dict[str, QueryStats]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """No learned pose for any query: initial_R/initial_t NaN, as relocalize.prior=none writes them."""
+    return {n: (np.full((3, 3), np.nan), np.full(3, np.nan)) for n in stats}
+
+
+def test_a_learned_pose_never_computed_is_null_not_zero(tmp_path):
+    from usvc.metrics.evaluate import initial_pose_computed
+
+    scene = _scene()
+    stats = _stats(scene)
+    _write_queries_h5(tmp_path / "queries.h5", stats, _nowhere(stats))
+    records = read_refinement_records(tmp_path / "queries.h5")
+    assert records.success.all() and not initial_pose_computed(records)
+    out = evaluate_initial_poses(scene, records, stats, median_depth=2.0)
+    initial = {k: v for k, v in out.items() if k.startswith("initial_")}
+    assert "initial_acc_5cm_5deg" in initial and "initial_median_rot_deg" in initial
+    assert all(v is None for v in initial.values()), initial  # not 0.0 and inf
+    # a learned pose that failed on some queries is still scored; nothing answered stays as it was
+    _write_queries_h5(tmp_path / "some.h5", stats, {**_nowhere(stats), **dict(list(_exact(scene).items())[:2])})
+    assert initial_pose_computed(read_refinement_records(tmp_path / "some.h5"))
+    none = {n: QueryStats(s.inliers, s.seconds, False) for n, s in stats.items()}
+    _write_queries_h5(tmp_path / "none.h5", none, _nowhere(stats))
+    assert initial_pose_computed(read_refinement_records(tmp_path / "none.h5"))
+
+
+@pytest.mark.slow
+def test_stage_says_not_computed_without_a_learned_pose(inputs):
+    scene = _scene(metric_scale=1.0)
+    stats = _stats(scene, seconds=0.02)
+    _write_queries_h5(inputs / "data/mini/relocalize/queries.h5", stats, _nowhere(stats))
+    proc = _run_stage(inputs)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    metrics = json.loads((inputs / "results/mini/metrics.json").read_text())
+    assert metrics["acc_5cm_5deg"] == pytest.approx((N_QUERIES - 1) / N_QUERIES)  # the answers, as before
+    assert metrics["initial_acc_5cm_5deg"] is None and metrics["initial_median_trans_cm"] is None
+    assert "before refinement: not computed" in out and "before refinement acc" not in out, out

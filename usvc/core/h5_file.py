@@ -1,9 +1,11 @@
 """HDF5 artifacts in and out.
 
 Reading: a missing, corrupt or incomplete file is one UsvcError naming it, never an h5py
-traceback. Writing: the file is built in memory and written to disk in one plain write, so a full
-disk or a file-size limit is one OSError that the caller's atomic block cleans up after (HDF5
-failing mid-file floods stderr and can crash the interpreter).
+traceback; so is a dataset whose header declares more data than the file can hold, refused before
+anything is read or allocated (`check_declared_sizes`). Writing: the file is built in memory and
+written to disk in one plain write, so a full disk, a file-size limit or a read-only folder is one
+WriteError naming the destination, which the caller's atomic block cleans up after (HDF5 failing
+mid-file floods stderr and can crash the interpreter).
 
 Self-description: a writer passes its file's `format` name, `version` and a schema (dataset path
 -> `Field`); every dataset in the file then carries `units`, `description` and, where it has
@@ -14,7 +16,6 @@ one, `frame` attributes, and a dataset the schema does not describe is a program
 from __future__ import annotations
 
 import contextlib
-import errno
 import io
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import h5py
 
+from usvc.core.atomic import WRITE_ERRNOS, WriteError
 from usvc.core.errors import UsvcError
 
 
@@ -37,12 +39,73 @@ def read_h5(path: str | Path, what: str) -> Iterator[h5py.File]:
         raise UsvcError(f"{path}: cannot read {what}: not an HDF5 file, or corrupt or truncated") from None
     try:
         with h5:
+            check_declared_sizes(h5, path, what)
             yield h5
     except UsvcError:
         raise
     except (KeyError, OSError, ValueError, TypeError, IndexError) as exc:
         detail = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
         raise UsvcError(f"{path}: {what} is incomplete or corrupt ({detail})") from None
+
+
+# Deflate, HDF5's gzip filter, packs at most ~1032 bytes into one: a compressed dataset that declares
+# more than this many times its stored bytes cannot hold what it declares.
+MAX_COMPRESSION_RATIO = 1100
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} bytes"
+
+
+def declared_size_problem(ds: h5py.Dataset, file_bytes: int) -> str:
+    """Why `ds` cannot hold what its shape and type declare, from the HDF5 header alone ("" when it
+    can): nothing is read or allocated. Contiguous (or compact) data must be stored whole, inside the
+    file; chunked (compressed) data cannot expand beyond deflate's ratio, and its chunks must fit in
+    the file. A crafted header (10^9 rows in a 10 MB file) is refused before numpy allocates for it."""
+    shape = ds.shape
+    if shape is None:  # a null dataspace: no data
+        return ""
+    elements = 1
+    for n in shape:
+        elements *= int(n)
+    if elements == 0:
+        return ""
+    declared = elements * ds.id.get_type().get_size()  # the element's size in the file
+    stored = ds.id.get_storage_size()
+    what = (f"declares {'x'.join(map(str, shape)) or 'a scalar'} {ds.dtype} ({_size(declared)}), but the file "
+            f"is {_size(file_bytes)}")
+    if ds.external:
+        return f"{what} and keeps it in external files: not a usvc artifact"
+    if stored > file_bytes:
+        return f"{what} and claims {_size(stored)} stored"
+    if ds.chunks is None:
+        if declared > stored:
+            return f"{what} with {_size(stored)} stored"
+    elif declared > max(stored, 1) * MAX_COMPRESSION_RATIO:
+        return f"{what} with {_size(stored)} stored (more than compression can pack in it)"
+    return ""
+
+
+def check_declared_sizes(h5: h5py.File, path: Path, what: str) -> None:
+    """Refuse a file any of whose datasets declares more data than the file can hold (one line naming
+    the file and the dataset), before any dataset is read."""
+    file_bytes = Path(path).stat().st_size
+    found: list[tuple[str, str]] = []
+
+    def visit(name: str, obj: object) -> None:
+        if not found and isinstance(obj, h5py.Dataset):
+            why = declared_size_problem(obj, file_bytes)
+            if why:
+                found.append((name, why))
+
+    h5.visititems(visit)
+    if found:
+        name, why = found[0]
+        raise UsvcError(f"{path}: {what} dataset {name} {why}: corrupt or crafted file")
 
 
 @dataclass(frozen=True)
@@ -113,12 +176,14 @@ def write_h5(path: str | Path, schema: Schema | None = None, file_format: str | 
 
 
 def write_bytes(path: Path, data: bytes | memoryview) -> None:
-    """Write a whole file; no space or a file-size limit is a UsvcError naming the file."""
+    """Write a whole file; no space, a file-size limit, a read-only disk or no permission is a
+    WriteError (a UsvcError) naming the file's destination (not its temporary path) and the reason."""
     try:
         with open(path, "wb") as f:
             f.write(data)
     except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
-            Path(path).unlink(missing_ok=True)
-            raise UsvcError(f"cannot write {path}: {exc.strerror} (disk full or a file-size limit)") from None
+        if exc.errno in WRITE_ERRNOS:
+            with contextlib.suppress(OSError):
+                Path(path).unlink(missing_ok=True)
+            raise WriteError(path, exc) from None
         raise

@@ -88,6 +88,37 @@ def _keypoints(h5: h5py.File) -> MappingKeypoints | None:
                             landmark=np.asarray(h5["keypoints/landmark"][()], np.int32))
 
 
+# Datasets that hold one row per landmark, observation, mapping image or keypoint, and the columns
+# each row has (None: a single value): their declared shapes must agree before any is read.
+ROW_TABLES: tuple[dict[str, int | None], ...] = (
+    {"xyz": 3, "descriptor": 128, "view_dir": 3, "view_angle_deg": None, "track_length": None},
+    {"obs/landmark": None, "obs/image": None, "obs/uv": 2, "obs/descriptor": 128},
+    {"images/name": None, "images/K": None, "images/size": 2},
+    {"keypoints/image": None, "keypoints/uv": 2, "keypoints/descriptor": 128, "keypoints/landmark": None},
+)
+
+
+def check_declared_shapes(h5: h5py.File, path: Path) -> None:
+    """The datasets of one table declare the same row count and their own columns (from the header:
+    nothing is read yet; read_h5 has checked each dataset's declared bytes against the file)."""
+    for table in ROW_TABLES:
+        rows: tuple[str, int] | None = None
+        for name, columns in table.items():
+            if name not in h5:
+                continue
+            ds = h5[name]
+            if not isinstance(ds, h5py.Dataset) or not ds.shape:
+                raise UsvcError(f"{path}: landmarks dataset {name} is not a table (shape {getattr(ds, 'shape', None)})")
+            if columns is not None and (len(ds.shape) != 2 or ds.shape[1] != columns):
+                raise UsvcError(f"{path}: landmarks dataset {name} declares shape {ds.shape}, "
+                                f"expected ({ds.shape[0]}, {columns}): corrupt or crafted file")
+            if rows is None:
+                rows = (name, ds.shape[0])
+            elif ds.shape[0] != rows[1]:
+                raise UsvcError(f"{path}: landmarks dataset {name} declares {ds.shape[0]} rows, {rows[0]} "
+                                f"{rows[1]}: corrupt or crafted file")
+
+
 def read_landmarks(path: Path | str) -> Landmarks:
     path = Path(path)
     with read_h5(path, "landmarks") as h5:
@@ -96,6 +127,7 @@ def read_landmarks(path: Path | str) -> Landmarks:
         if h5.attrs.get("version") not in READABLE_VERSIONS:
             raise UsvcError(f"{path}: landmarks format version {h5.attrs.get('version')!r}, "
                             f"this code reads {', '.join(map(str, READABLE_VERSIONS))}")
+        check_declared_shapes(h5, path)
         scene = h5.attrs.get("scene")
         scene = scene.decode() if isinstance(scene, bytes) else str(scene)
         try:

@@ -119,16 +119,27 @@ def evaluate_initial_poses(
     records: RefinementRecords,
     query_stats: Mapping[str, QueryStats],
     median_depth: float | None,
-) -> dict[str, float | int]:
+) -> dict[str, float | int | None]:
     """Headline figures of the pre-refinement poses, prefixed "initial_", plus the refinement rates.
 
     Scored by `evaluate_poses` against the same queries and failures as the returned poses, so
-    `acc_5cm_5deg` vs `initial_acc_5cm_5deg` is the refinement on/off ablation from one run.
+    `acc_5cm_5deg` vs `initial_acc_5cm_5deg` is the refinement on/off ablation from one run. When
+    queries were answered but none of them has a learned pose (`relocalize.prior=none` computes
+    none), the learned pose was not computed: every initial_ figure is None (null in JSON), not the
+    0 % and inf errors of a pose that failed everywhere.
     """
     ok = records.success & np.isfinite(records.initial_R).all(axis=(1, 2)) & np.isfinite(records.initial_t).all(axis=1)
     estimates = {n: (records.initial_R[i], records.initial_t[i]) for i, n in enumerate(records.names) if ok[i]}
     summary, _ = evaluate_poses(scene, estimates, query_stats, median_depth)
-    out: dict[str, float | int] = {f"initial_{k}": v for k, v in summary.items()
-                                   if v is not None and _is_headline(k, v)}
+    computed = initial_pose_computed(records)
+    out: dict[str, float | int | None] = {f"initial_{k}": v if computed else None for k, v in summary.items()
+                                          if v is not None and _is_headline(k, v)}
     out.update(refinement_summary(records.kept[records.success], records.iterations[records.success]))
     return out
+
+
+def initial_pose_computed(records: RefinementRecords) -> bool:
+    """Whether the learned (pre-refinement) pose was computed: False when queries were answered and
+    none of them has one (NaN initial_R/initial_t on every answered query: relocalize.prior=none)."""
+    ok = np.isfinite(records.initial_R).all(axis=(1, 2)) & np.isfinite(records.initial_t).all(axis=1)
+    return not (records.success.any() and not (ok & records.success).any())

@@ -45,7 +45,10 @@ def run(inputs: Inputs, out: Path, *, headline: Path) -> dict:
     log.info("metrics %s: %s=%.3f over %d queries (%d failed), median %.3g deg%s",
              scene.name, key, summary[key], summary["n_queries"], summary["n_failed"], summary["median_rot_deg"],
              " (against SfM pseudo ground truth)" if scene.pose_source == "sfm" else "")
-    if f"initial_{key}" in summary:
+    if f"initial_{key}" in summary and summary[f"initial_{key}"] is None:
+        log.info("metrics %s: before refinement: not computed (no answered query has a learned pose, "
+                 "as with relocalize.prior=none)", scene.name)
+    elif f"initial_{key}" in summary:
         log.info("metrics %s: before refinement %s=%.3f; refined pose kept for %.0f%% of queries",
                  scene.name, key, summary[f"initial_{key}"], 100 * summary["refine_kept_fraction"])
     # "sfm": the queries' poses were estimated by SfM here (pseudo ground truth), not given

@@ -7,6 +7,7 @@ encoder by accident. `usvc.model.map_checks` validates each entry.
 
 from __future__ import annotations
 
+import errno
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from usvc.core.atomic import atomic_file
+from usvc.core.atomic import WriteError, atomic_file
 from usvc.model.encoder import Encoder, _first_line, check_state_dict, encoder_fingerprint
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor
@@ -78,7 +79,14 @@ def save_map(path: str | Path, regressor: Regressor, metadata: Mapping[str, Any]
     check_finite_state(state, where)
     payload[CHECKSUM_KEY] = map_checksum(payload)
     with atomic_file(Path(path)) as tmp:
-        torch.save(payload, tmp)
+        try:
+            torch.save(payload, tmp)
+        except RuntimeError as exc:  # torch's zip writer reports a failed write without errno
+            if "inline_container" not in str(exc) and "PytorchStreamWriter" not in str(exc):
+                raise
+            detail = (str(exc).splitlines() or [""])[0].rsplit("] ", 1)[-1].lstrip(". ")[:80]
+            why = OSError(errno.EIO, f"torch's writer failed ({detail}): a full disk, a quota or a file-size limit?")
+            raise WriteError(tmp, why) from None
     log.info("saved map %s", path)
 
 
@@ -131,10 +139,15 @@ def load_head(path: str | Path, encoder_fp: str,
             f"this encoder {encoder_fp[:12]}, width {payload['encoder'].get('width')})"
         )
     try:
-        head = Head(**payload["head_config"])
+        # The header's sizes are checked against the weights the file holds before anything is
+        # allocated: a head built on the meta device has the shapes and no storage (head_config may
+        # declare a 65536-wide, 64-block head, terabytes, in a file of a few MB).
+        with torch.device("meta"):
+            skeleton = Head(**payload["head_config"])
     except (TypeError, ValueError) as exc:
         raise ModelError(f"{path}: invalid head configuration ({_first_line(exc)})") from exc
-    check_state_dict(path, payload["head_state"], head, "map head")
+    check_state_dict(path, payload["head_state"], skeleton, "map head (as its head_config declares it)")
+    head = Head(**payload["head_config"])
     head.load_state_dict(payload["head_state"], strict=True)
     return head, payload["metadata"]
 

@@ -139,12 +139,27 @@ def group_options(cfg: Any, group: str) -> Any:
     return OmegaConf.to_object(node) if isinstance(node, DictConfig) else node
 
 
+def _check_scene_name(cfg: Any) -> None:
+    """`scene.name` names the folders every stage writes (data/<name>/, results/<name>/): the rule of
+    `usvc map --name` (usvc.pipeline.paths.scene_name_problem), checked before anything is written."""
+    scene = cfg.get("scene") if hasattr(cfg, "get") else None
+    if scene is None or not hasattr(scene, "get") or "name" not in scene:
+        return
+    from usvc.pipeline.paths import scene_name_problem
+
+    why = scene_name_problem(scene.name)
+    if why:
+        sep = " " if why.startswith("is ") else ": "
+        raise ConfigError(f"config key scene.name={scene.name!r}{sep}{why}")
+
+
 def validate(cfg: Any, schemas: dict[str, type] | None = None) -> None:
     """Reject unknown keys and values outside what each step accepts (Hydra has checked the types):
     each registered group's options dataclass says what it accepts (`problems()`). `schemas`: the
     groups the caller registered (default: all)."""
     schemas = group_schemas() if schemas is None else schemas
     _check_keys(cfg, schemas)
+    _check_scene_name(cfg)
     if cfg.method not in METHODS:
         raise ConfigError(f"config key method={cfg.method!r} is not one of {list(METHODS)}")
     for group in schemas:

@@ -4,7 +4,8 @@ A stage names the config groups it reads and a function that runs its step; the 
 those groups' schemas (and no others: `usvc.pipeline.config`), answers `--help`, validates the
 config, sets the thread pools, writes the artifact folder atomically (a failed or killed stage
 leaves nothing half-written), times the step and records its peak memory beside the step's own
-figures in `results/<scene>/<stage>.json`, and turns a UsvcError into one log line and exit 1.
+figures in `results/<scene>/<stage>.json`, and turns a UsvcError, or a write the disk refuses (full,
+read-only, no permission), into one log line and exit 1.
 
     stage = Stage("keypoints", keypoints=KeypointOptions)
 
@@ -30,13 +31,13 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from usvc.core.atomic import atomic_dir
+from usvc.core.atomic import WRITE_ERRNOS, WriteError, atomic_dir, final_path, write_reason
 from usvc.core.device import device_record, resolve_device
 from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
 from usvc.pipeline.config import group_options, register_configs, validate
 from usvc.pipeline.logs import quiet_third_party
-from usvc.pipeline.metrics_file import write_json
+from usvc.pipeline.metrics_file import timing_path, write_json
 from usvc.pipeline.paths import METRICS_JSON, ScenePaths
 
 log = logging.getLogger("usvc")
@@ -96,6 +97,7 @@ class Stage:
         self.torch_device = torch_device
         self.threads = -1  # the thread count the shell applied (from `threads=`), once it runs
         self.device = "cpu"  # the torch device the shell resolved (from `device=`), once it runs
+        self._writes: tuple[Path | None, ...] = ()  # the artifact folder and record files, once it runs
 
     def options(self, cfg: DictConfig, group: str) -> Any:
         """The options object of one of the groups this stage reads."""
@@ -126,18 +128,43 @@ class Stage:
             ran_on = device_record(self.device)
             log.debug("device: %s (%s)", self.device, ran_on["device_name"])
         out, record = self.outputs(cfg)
+        self._writes = (out, record, timing_path(record))
         t0 = time.perf_counter()
         with atomic_dir(out) if out is not None else nullcontext(None) as tmp:
             if skipped:
                 stats = skipped_without_rendered_views(tmp, self.name, cfg.method)
             else:
                 stats = fn(cfg, scene_paths(cfg), tmp) or {}
-        write_json(record, {**stats, **ran_on, "seconds": time.perf_counter() - t0,
-                            "peak_memory_mb": peak_memory_mb()})
+            # Inside the block: a record that cannot be written (a read-only results/) leaves no
+            # artifact either, so the two never disagree.
+            write_json(record, {**stats, **ran_on, "seconds": time.perf_counter() - t0,
+                                "peak_memory_mb": peak_memory_mb()})
+
+    def write_failure(self, err: OSError) -> str | None:
+        """The one line for a write the disk or the folder refused (full, a file-size limit, a quota,
+        read-only, no permission), naming the artifact folder or record it was writing, never a
+        temporary path; None for any other OSError (a traceback: a bug)."""
+        if err.errno not in WRITE_ERRNOS:
+            return None
+        written = [p for p in self._writes if p is not None]
+        if not err.filename:
+            where = f" {written[0]}" if written else ""
+            return f"cannot write{where}: {write_reason(err)}, nothing written"
+        path = Path(err.filename)
+        if final_path(path) != path:  # in an atomic block's temporary sibling: named by its artifact
+            return f"{WriteError(path, err)}, nothing written"
+        # A folder on the way to an artifact or record (mkdir data/<scene>): named by it.
+        target = next((p for p in written if path == p or path in p.parents), None)
+        if target is None:
+            if err.errno in (errno.EACCES, errno.EPERM):  # reading an input, or writing elsewhere
+                return f"cannot access {path}: {err.strerror}"
+            target = path
+        return f"cannot write {target}: {write_reason(err)}, nothing written"
 
     def main(self, fn: StepFn) -> Callable[[], None]:
         """The stage's entry point: `--help` prints the options it reads; otherwise Hydra composes
-        the config and the step runs. A UsvcError is one log line and exit status 1 (Ctrl-C: 130)."""
+        the config and the step runs. A UsvcError, or a write the disk refuses (`write_failure`), is
+        one log line and exit status 1 (Ctrl-C: 130)."""
         import hydra
 
         @hydra.main(version_base=None, config_path=str(Path(__file__).resolve().parents[2] / "conf"),
@@ -148,15 +175,17 @@ class Stage:
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
             try:
                 self._run(fn, cfg)
+            except WriteError as err:
+                log.error("%s failed: %s, nothing written", self.name, err)
+                sys.exit(1)
             except UsvcError as err:
                 log.error("%s failed: %s", self.name, err)
                 sys.exit(1)
             except OSError as err:
-                if err.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+                line = self.write_failure(err)
+                if line is None:
                     raise
-                where = f" writing {err.filename}" if err.filename else ""
-                log.error("%s failed: %s%s (disk full or a file-size limit), nothing written",
-                          self.name, err.strerror, where)
+                log.error("%s failed: %s", self.name, line)
                 sys.exit(1)
             except KeyboardInterrupt:  # artifacts are written atomically, so nothing half-written stays
                 log.error("%s interrupted, nothing written", self.name)

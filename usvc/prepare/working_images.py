@@ -7,6 +7,7 @@ only. Poses are unchanged by undistortion, so metrics still score against the im
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import tempfile
@@ -18,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from usvc.core.artifact_names import SCENE_H5
+from usvc.core.atomic import WRITE_ERRNOS, WriteError, final_path
 from usvc.core.errors import SceneError
 from usvc.core.geometry import field_of_view_deg
 from usvc.core.images import read_photo
@@ -130,8 +132,30 @@ def check_cameras(frames: list[Frame], undistort_fov: str) -> None:
         check_distortion(camera, undistort_fov, where=f"{names[0]}{more}")
 
 
-def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str) -> dict:
-    """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth)."""
+def write_image(dst: Path, image: np.ndarray, where: str | None = None) -> None:
+    """Encode in memory and write with Python's own file calls (the same bytes as cv2.imwrite), so a
+    full or read-only disk is a WriteError naming the destination folder and the reason
+    (cv2.imwrite only answers False). `where`: the folder to name instead of dst's (in words)."""
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
+    ok, encoded = cv2.imencode(dst.suffix, image, params)
+    if not ok:
+        raise SceneError(f"cannot encode image {final_path(dst)} as {dst.suffix}")
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with open(dst, "wb") as f:
+            f.write(encoded.tobytes())
+    except OSError as exc:
+        if exc.errno not in WRITE_ERRNOS:
+            raise
+        with contextlib.suppress(OSError):
+            dst.unlink(missing_ok=True)
+        raise WriteError(dst, exc, "image", where) from None
+
+
+def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
+                    where: str | None = None) -> dict:
+    """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth). `where`: how a
+    failed write names `out_dir` (default: its artifact folder)."""
     scene.split("train")
     scene.split("test")
     check_cameras(scene.frames, undistort_fov)
@@ -149,10 +173,7 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
         if (ww, wh) != (w, h):
             image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
         dst = out_dir / IMAGE_DIR / frame.name
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
-        if not cv2.imwrite(str(dst), image, params):
-            raise SceneError(f"cannot write image {dst}")
+        write_image(dst, image, where)
         if depth is not None and depth.shape[:2] != (wh, ww):
             depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
         depths.append(depth)
@@ -161,7 +182,12 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
             contents.setdefault(hashlib.sha1(image.tobytes()).hexdigest(), []).append(frame.name)
     check_distinct_mapping_images(scene.name, contents)
     prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
-    write_scene_h5(out_dir / SCENE_H5, prepared, depths, source_cameras=[f.camera for f in scene.frames])
+    try:
+        write_scene_h5(out_dir / SCENE_H5, prepared, depths, source_cameras=[f.camera for f in scene.frames])
+    except WriteError as exc:
+        if where is None:
+            raise
+        raise WriteError(out_dir / SCENE_H5, exc.error, where=where) from None
     n_train = len(prepared.split("train"))
     stats = {
         "frames": len(out_frames),
@@ -185,7 +211,9 @@ def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_
     with tempfile.TemporaryDirectory(prefix="usvc-posing-") as work:
         resized_dir = Path(work) / "resized"
         resized_dir.mkdir()
-        _write_prepared(scene, resized_dir, working_width, undistort_fov)
+        # Its files are gone when the error is read: name the folder that is full, not them.
+        where = f"{tempfile.gettempdir()} (the temporary folder SfM poses the photos in; TMPDIR sets it)"
+        _write_prepared(scene, resized_dir, working_width, undistort_fov, where)
         resized = read_scene_h5(resized_dir / SCENE_H5)
         # SfM calibrates the importer's camera model (SIMPLE_RADIAL): keep it, at working size
         source = {f.name: f for f in scene.frames}
