@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import keyword
 import logging
 import math
 import os
@@ -33,22 +32,13 @@ from pathlib import Path
 import yaml
 
 from usvc.core.errors import UsvcError
+from usvc.pipeline.paths import scene_name_problem
 from usvc.prepare.importers import FORMATS, import_scene
 from usvc.prepare.options import MAX_WORKING_WIDTH, MIN_WORKING_WIDTH
 from usvc.prepare.registration_guards import SignalGuard, checkout_lock
 
 log = logging.getLogger(__name__)
 
-NAME_RULE = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
-# Words a scene name must not be: Python keywords (the name is used as an identifier by tools that
-# read params), YAML/OmegaConf literals (`scene=null` deletes the group, `name: yes` is a boolean),
-# Hydra's own keys, and `raw` (data/raw/ holds every scene's photos, data/<name>/ its artifacts).
-RESERVED_NAMES = {
-    **{w: "a Python keyword" for w in keyword.kwlist if w.islower()},
-    **{w: "a YAML/Hydra literal" for w in ("null", "none", "true", "false", "yes", "no", "on", "off", "nan", "inf")},
-    **{w: "a Hydra key" for w in ("hydra", "defaults")},
-    "raw": "data/raw/ holds the scenes' photos",
-}
 LOCK_FILE = ".usvc-map.lock"  # in the checkout root, held while a scene is registered
 SHOWN_PROBLEMS = 3
 UNDISTORT_FOV = "crop"  # the scene config's undistort_fov (no black borders)
@@ -130,14 +120,9 @@ def _params_scenes(params: Path) -> list:
 
 def check_name(name: str, checkout: Path) -> None:
     """Refuse a name that breaks the pattern, is reserved, or is taken in ``checkout``."""
-    if not isinstance(name, str) or not NAME_RULE.match(name):
-        raise UsvcError(f"scene name {name!r}: use lower-case letters, digits and _, starting with a letter "
-                        "(at most 64 characters)")
-    if name in RESERVED_NAMES:
-        raise UsvcError(f"scene name {name!r} is reserved ({RESERVED_NAMES[name]}); pick another --name")
-    if name.startswith("base_"):
-        raise UsvcError(f"scene name {name!r}: names starting with base_ are reserved for usvc's config schemas "
-                        "(conf/scene/base_scene would replace the schema every scene builds on); pick another --name")
+    problem = scene_name_problem(name)  # the rule every stage's scene.name obeys too
+    if problem:
+        raise UsvcError(f"scene name {name!r}{' ' if problem.startswith('is ') else ': '}{problem}; pick another --name")
     conf = checkout / "conf"
     for taken in (conf / f"{name}.yaml", conf / name):
         if taken.exists():
