@@ -236,3 +236,35 @@ def test_device_check_cuts_every_step_to_what_is_left_of_its_budget(tmp_path):
                              capture_output=True, text=True, timeout=60)
     assert missing.returncode == 2 and "copy_shared_scene.sh kitchen" in missing.stderr
     assert not (tmp_path / "out" / "logs" / "real_kitchen.log").exists()
+
+
+@pytest.mark.slow
+def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
+    """benchmarks/scaling.py at two tiny sizes of the generated room, in a copy of the checkout:
+    each size's stages, bytes, query time and both accuracies in the JSON, the log-log plot beside
+    it, and the generated scenes' folders removed afterwards."""
+    import shutil
+
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for name in ("conf", "stages"):
+        shutil.copytree(REPO / name, checkout / name)
+    for name in ("dvc.yaml", "params.yaml"):
+        shutil.copy(REPO / name, checkout / name)
+    env = {**os.environ, "USVC_BENCHMARK_DIR": str(tmp_path / "reports"), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "benchmarks/scaling.py", "--frames", "8", "12", "--threads", "1",
+                           "--checkout", str(checkout), "--name", "scaling_smoke", "--", "train.iterations=20",
+                           "buffer.min_size=8192", "generate.n_query_frames=3", "generate.supersample=1"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads((tmp_path / "reports" / "scaling_smoke.json").read_text())
+    sizes = report["sizes"]
+    assert [s["mapping_frames"] for s in sizes] == [8, 12] and [s["scene"] for s in sizes] == ["room8", "room12"]
+    for s in sizes:
+        assert set(s["stages"]) >= {"prepare", "sfm", "buffer", "train", "landmarks", "relocalize", "metrics"}
+        assert all(v["seconds"] > 0 for v in s["stages"].values())
+        assert s["map_bytes"] > 0 and s["landmarks_bytes"] > 0 and s["query_ms_median"] > 0
+        assert s["queries"] == 3 and 0 <= s["share_without_fallback"] <= 1 and s["train_steps"] == 20
+        assert "acc_5cm_5deg" in s["metrics"] and "initial_acc_5cm_5deg" in s["metrics"]
+    assert (tmp_path / "reports" / "scaling_smoke.png").stat().st_size > 10_000
+    assert not any((checkout / "data").glob("room*")) and not any((checkout / "results").glob("room*"))
