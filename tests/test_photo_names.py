@@ -129,3 +129,41 @@ def test_odd_photo_names_give_the_model_plain_names_give(tmp_path, reconstructio
         assert len(tracks.xyz) == len(base.xyz), key
         np.testing.assert_array_equal(tracks.xyz, base.xyz, err_msg=str(key))
         np.testing.assert_array_equal(tracks.obs_uv, base.obs_uv, err_msg=str(key))
+
+
+def test_a_photo_colmap_cannot_decode_is_prepared_with_png_bytes_under_its_name(tmp_path):
+    """A .webp photo keeps its name in the prepared scene, with lossless PNG content that COLMAP's
+    reader, OpenCV and Pillow decode (they tell the format by the bytes)."""
+    import cv2
+
+    from usvc.prepare.working_images import write_image
+
+    image = (np.arange(48 * 64 * 3) % 251).astype(np.uint8).reshape(48, 64, 3)
+    write_image(tmp_path / "Photo (1).WEBP", image)
+    data = (tmp_path / "Photo (1).WEBP").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), image)
+    write_image(tmp_path / "a.JPG", image)  # a format COLMAP reads keeps it
+    assert (tmp_path / "a.JPG").read_bytes()[:2] == b"\xff\xd8"
+
+
+@pytest.mark.slow
+@pytest.mark.shared
+def test_a_webp_capture_is_posed_and_triangulated(tmp_path):
+    """Twelve office photos as .webp (odd names too): imported, prepared and triangulated."""
+    import cv2
+
+    src = shared_scene("office")
+    plain = sorted(p.name for p in (src / "images").iterdir())[:12]
+    _capture(src, tmp_path / "jpg", dict(zip(plain, sorted(ODD_NAMES))))
+    raw = tmp_path / "webp"
+    (raw / "images").mkdir(parents=True)
+    for path in sorted((tmp_path / "jpg" / "images").iterdir()):
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        ok, data = cv2.imencode(".webp", cv2.resize(image, (640, 360), interpolation=cv2.INTER_AREA),
+                                [cv2.IMWRITE_WEBP_QUALITY, 95])
+        assert ok
+        (raw / "images" / (path.stem + ".webp")).write_bytes(data.tobytes())
+    shutil.copyfile(tmp_path / "jpg" / "poses_bounds.npy", raw / "poses_bounds.npy")
+    tracks, info, names = _model(raw, tmp_path / "out", "triangulate", 2)
+    assert all(n.endswith(".webp") for n in names) and info["images"] == 10 and len(tracks.xyz) > 100

@@ -132,12 +132,17 @@ def check_cameras(frames: list[Frame], undistort_fov: str) -> None:
         check_distortion(camera, undistort_fov, where=f"{names[0]}{more}")
 
 
+COLMAP_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")  # the formats SfM's reader decodes
+
+
 def write_image(dst: Path, image: np.ndarray, where: str | None = None) -> None:
     """Encode in memory and write with Python's own file calls (the same bytes as cv2.imwrite), so a
     full or read-only disk is a WriteError naming the destination folder and the reason
     (cv2.imwrite only answers False). `where`: the folder to name instead of dst's (in words)."""
     params = [cv2.IMWRITE_JPEG_QUALITY, 95] if dst.suffix.lower() in (".jpg", ".jpeg") else []
-    ok, encoded = cv2.imencode(dst.suffix, image, params)
+    # A photo in a format COLMAP's reader does not decode (.webp) keeps its name, with PNG's bytes:
+    # COLMAP, OpenCV and Pillow all tell the format by the content.
+    ok, encoded = cv2.imencode(dst.suffix if dst.suffix.lower() in COLMAP_SUFFIXES else ".png", image, params)
     if not ok:
         raise SceneError(f"cannot encode image {final_path(dst)} as {dst.suffix}")
     try:

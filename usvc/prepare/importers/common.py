@@ -14,7 +14,7 @@ from usvc.core.exif import oriented_size
 from usvc.core.geometry import quat_wxyz_to_matrix
 from usvc.core.scene import Camera, Frame, every_nth_split
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")  # any case: .JPG is .jpg
 
 
 def natural_key(text: str) -> list[Any]:
