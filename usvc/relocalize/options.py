@@ -56,6 +56,7 @@ class RelocalizeOptions:
     features_ratio: float = 0.8  # Lowe's ratio test: nearest descriptor distance < ratio x second nearest
     features_max_error_px: float = 9.0  # LO-RANSAC PnP inlier threshold, px at a 480 px short side (COLMAP's 12 px at 640)
     features_min_inliers: int = 20  # a feature pose needs this many PnP inliers; fewer: fall back to the dense pose
+    features_min_inliers_alone: int = 40  # a feature answer from the matches to every landmark (path global, not guided by the learned pose) that the map does not read (confidence < min_confidence) needs this many inliers; fewer: refused, matches by chance give such poses (docs/confidence.md); 0 = no check
     features_pnp: str = "poselib"  # LO-RANSAC PnP of the guided and global passes: poselib (PoseLib's: about half COLMAP's time on their nearly all-inlier matches, the same figures on mini and office, bird's within a query: docs/results.md) | pycolmap (COLMAP's); SIFT + PnP's own evidence keeps COLMAP's, as the baseline registers a query
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
     features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 20-64 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
@@ -75,6 +76,8 @@ class RelocalizeOptions:
         out += in_range(self, "features_ratio", 0.0, 1.0)
         if self.features_min_inliers < 4:
             out.append(f"features_min_inliers={self.features_min_inliers!r} must be >= 4 (a pose needs 4 points)")
+        if self.features_min_inliers_alone < 0:
+            out.append(f"features_min_inliers_alone={self.features_min_inliers_alone!r} must be >= 0 (0: no check)")
         radii = list(self.features_radii_px)
         if not radii or not all(isinstance(r, (int, float)) and 0 < r < float("inf") for r in radii):
             out.append(f"features_radii_px={radii!r} must be one or more positive radii")

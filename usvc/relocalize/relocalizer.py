@@ -73,6 +73,28 @@ CAMERA_FOV = "crop"
 FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features  # a distorted query is undistorted as prepare undistorts mapping images
 
 
+UNGUIDED_PATHS = ("global",)  # feature answers not guided by the learned pose: the matches to every landmark
+
+
+def features_alone_verdict(path: str, feature_inliers: int, dense_inliers: int, cells: int,
+                           options: RelocalizeOptions) -> str:
+    """Why a feature answer is no answer ("" when it stands): it came from unguided matches
+    (UNGUIDED_PATHS), the map does not read the photo (fewer than `min_confidence` of the `cells`
+    agree with the pose) and fewer than `features_min_inliers_alone` of the photo's features
+    support it. Matching against every landmark finds some pose with a few dozen inliers among
+    random matches (a photo stretched out of shape, landmarks that are not this map's); an answer
+    that the map's cells or clearly more features than that do not back is not trusted
+    (docs/confidence.md)."""
+    need = options.features_min_inliers_alone
+    if path not in UNGUIDED_PATHS or need <= 0 or feature_inliers >= need \
+            or dense_inliers >= options.min_confidence * cells:
+        return ""
+    return (f"the pose rests on the photo's features matched against every landmark alone: {feature_inliers} "
+            f"inliers < features_min_inliers_alone {need}, and the map does not read the photo (confidence "
+            f"{dense_inliers / cells:.3f} < min_confidence {options.min_confidence:g}): matches by chance give such "
+            "poses (a photo stretched or cropped out of shape, another place, or landmarks that are not this map's?)")
+
+
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
     return RefineOptions(radius_px=options.refine_radius_px, max_iterations=options.refine_max_iterations,
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
@@ -386,6 +408,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                 R, t, path = feature.R, feature.t, feature.path
                 if camera is not None:  # the dense support of the final pose, for `confidence`
                     inliers = int(reprojection_inliers(camera, pixels, coords.reshape(-1, 3), R, t, threshold).sum())
+                rejected = features_alone_verdict(path, feature.inliers, inliers, hc * wc, self.options)
             elif feature_rejected:
                 rejected = feature_rejected
         by_features = path in FEATURE_PATHS
