@@ -90,3 +90,23 @@ def test_a_global_answer_on_many_inliers_still_stands(tmp_path: Path, monkeypatc
     est = Relocalizer(path, tmp_path / "encoder.pt").localize(photo(), CAM)
     assert est.success and est.refine_path in ("global", "verified") and est.confidence < 0.1, est.rejected
     assert est.feature_inliers >= 40 and errors(est.R, est.t)[0] < 0.2
+
+
+def test_a_camera_far_outside_the_map_is_no_answer():
+    """A degenerate fit (a squeezed photo's few matches explained by a far camera with a huge focal
+    length: bird's query 161 squeezed to 3:4 came out 1.3e5 map radii away) is refused; cameras
+    around the map, as mapping photos sit (bird's orbit: up to 4.8 radii), stand."""
+    from usvc.relocalize.relocalizer import FAR_RADII, far_camera_verdict, map_extent
+
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(2000, 3)) + np.array([5.0, -2.0, 1.0])
+    extent = map_extent(xyz)
+    centre, radius = extent
+    np.testing.assert_allclose(centre, [5.0, -2.0, 1.0], atol=0.1)
+    assert 2.3 < radius < 2.7  # the 90th percentile of a 3D unit Gaussian cloud's distances: 2.5 sigma
+    assert far_camera_verdict(centre + np.array([0.0, 0.0, 5 * radius]), extent) == ""
+    assert far_camera_verdict(centre + np.array([0.0, 0.0, 0.99 * FAR_RADII * radius]), extent) == ""
+    why = far_camera_verdict(centre + np.array([1.3e5 * radius, 0.0, 0.0]), extent)
+    assert "1.3e+05 map radii" in why and "degenerate" in why
+    assert far_camera_verdict(np.array([np.nan] * 3), extent) == ""  # no pose: other checks say why
+    assert far_camera_verdict(centre * 1e9, None) == "" and map_extent(np.zeros((0, 3))) is None

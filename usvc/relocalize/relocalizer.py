@@ -20,6 +20,7 @@ import torch
 
 from usvc.core.absolute_pose import estimate_focal
 from usvc.core.errors import UsvcError
+from usvc.core.geometry import camera_centers
 from usvc.core.images import Photo, read_photo
 from usvc.core.options import check
 from usvc.core.precision import autocast, resolve_precision
@@ -93,6 +94,34 @@ def features_alone_verdict(path: str, feature_inliers: int, dense_inliers: int, 
             f"inliers < features_min_inliers_alone {need}, and the map does not read the photo (confidence "
             f"{dense_inliers / cells:.3f} < min_confidence {options.min_confidence:g}): matches by chance give such "
             "poses (a photo stretched or cropped out of shape, another place, or landmarks that are not this map's?)")
+
+
+FAR_RADII = 100.0  # a camera this many map radii from the map's centre sees it as a few pixels: no answer
+
+
+def map_extent(xyz: np.ndarray | None) -> tuple[np.ndarray, float] | None:
+    """(centre, radius) of the map's 3D points: their per-axis median and the 90th percentile of
+    the points' distances from it; None without points."""
+    if xyz is None or len(xyz) == 0:
+        return None
+    centre = np.median(np.asarray(xyz, dtype=np.float64), axis=0)
+    radius = float(np.percentile(np.linalg.norm(xyz - centre, axis=1), 90))
+    return centre, max(radius, 1e-12)
+
+
+def far_camera_verdict(center: np.ndarray, extent: tuple[np.ndarray, float] | None) -> str:
+    """Why a pose is no answer ("" when it stands): it puts the camera over FAR_RADII map radii
+    from the map's centre (mapping cameras sit within a few), where the map would be a speck in
+    the photo: a degenerate fit (a far camera with a huge focal length explains a squeezed photo's
+    few matches), not a view of the map."""
+    if extent is None or not np.all(np.isfinite(center)):
+        return ""
+    far = float(np.linalg.norm(np.asarray(center, dtype=np.float64) - extent[0])) / extent[1]
+    if far <= FAR_RADII:
+        return ""
+    return (f"the pose puts the camera {far:.3g} map radii from the map's centre (over {FAR_RADII:g}; its mapping "
+            "photos are within a few): a degenerate fit, not a view of this map (a photo stretched or cropped out "
+            "of shape, or another place?)")
 
 
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
@@ -429,6 +458,8 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                    "total": t4 - t0}
         if feature is not None and feature.verified_seconds is not None:  # SIFT + PnP's matching, part of refine
             seconds["fallback"] = feature.verified_seconds
+        if (result.success or by_features) and not rejected:
+            rejected = far_camera_verdict(camera_centers(R, t), self._extent())
         success = (result.success or by_features) and not rejected
         pose_found = bool(result.success or (feature is not None and feature.success))
         if not success:
@@ -447,6 +478,13 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                             feature_hypotheses=feature.tried if feature is not None else [],
                             verified=feature.verified if feature is not None else None,
                             warnings=warnings, pose_found=pose_found, prior=self.options.prior)
+
+    def _extent(self) -> tuple[np.ndarray, float] | None:
+        """The map's centre and radius (map_extent) from its landmarks, else its 3D keypoints; once."""
+        if not hasattr(self, "_map_extent"):
+            xyz = self.landmarks.xyz if self.landmarks is not None else self.keypoints_xyz
+            self._map_extent = map_extent(xyz)
+        return self._map_extent
 
     def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
         """Why neither the map's coordinates nor the features gave a pose."""
