@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import shared_scene
 
+from usvc.core.errors import SfmError
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.prepare.importers import load_scene
 from usvc.prepare.working_images import prepare_scene
@@ -65,7 +66,7 @@ def test_aliases_hold_no_space_or_hash_and_the_names_come_back(tmp_path):
 def test_a_photo_named_like_an_alias_is_refused_by_name(tmp_path):
     db = tmp_path / "database.db"
     _images_db(db, ["a.jpg", "usvc-image-1"])
-    with pytest.raises(ValueError, match="'usvc-image-1' is reserved"):
+    with pytest.raises(SfmError, match="'usvc-image-1' is reserved"):
         with aliased_names(db):
             pass
     assert _names(db) == ["a.jpg", "usvc-image-1"]

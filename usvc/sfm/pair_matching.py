@@ -31,6 +31,8 @@ from pathlib import Path
 
 import pycolmap
 
+from usvc.core.errors import SfmError
+
 # The tables a matching run fills; every other table is the extraction's, the same in each copy.
 _MATCH_TABLES = ("matches", "two_view_geometries")
 
@@ -99,7 +101,7 @@ def aliased_names(db_path: Path) -> Iterator[dict[str, str]]:
         aliases = {name: _ALIAS.format(image_id) for image_id, name in rows}
         clash = sorted(set(aliases) & set(aliases.values()))
         if clash:  # a photo named like an alias: renaming one onto the other would break the unique names
-            raise ValueError(f"photo name {clash[0]!r} is reserved for matching; rename that photo")
+            raise SfmError(f"photo name {clash[0]!r} is reserved for matching; rename that photo")
         with con:
             con.execute("UPDATE images SET name = ? || image_id", (_ALIAS.format(""),))
     finally:
