@@ -32,7 +32,7 @@ from pathlib import Path
 import yaml
 
 from usvc.core.errors import UsvcError
-from usvc.pipeline.paths import scene_name_problem
+from usvc.core.scene_names import scene_name_problem
 from usvc.prepare.importers import FORMATS, import_scene
 from usvc.prepare.options import MAX_WORKING_WIDTH, MIN_WORKING_WIDTH
 from usvc.prepare.registration_guards import SignalGuard, checkout_lock

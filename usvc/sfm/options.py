@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from usvc.core.options import one_of, positive
+from usvc.core.options import in_range, non_negative, one_of, positive
 
 EXTRACTORS = ("colmap", "opencv")  # usvc/sfm/opencv_extraction.py
 MATCHING = ("auto", "exhaustive", "sequential", "poses", "retrieval")
@@ -24,6 +24,9 @@ class SfmOptions:
     retrieval_neighbors: int = 20  # retrieval matching: each image with this many most similar images (VLAD on its SIFT)
     retrieval_words: int = 64  # retrieval matching: visual words of the capture's own vocabulary
     pose_pairs_per_image: int = 20  # pose-guided matching: nearest cameras by centre and viewing direction
+    keyframe_min_images: int = 200  # posed captures of more mapping frames than this run SfM on keyframes only (usvc/sfm/keyframes.py); smaller ones on every frame
+    keyframe_min_translation: float = 0.04  # keyframes: drop a frame nearer than this x the capture's size (median camera distance from their centroid) to a kept keyframe ...; 0 = every frame
+    keyframe_min_rotation_deg: float = 2.5  # ... and turned less than this many degrees from it; 0 = every frame
     reconstruction: str = "auto"  # auto: triangulate with the given poses held fixed, incremental when the scene has none | triangulate | incremental
     min_points: int = 100  # fewer triangulated points than this is a degenerate scene
     num_threads: int = -1  # COLMAP threads for feature extraction and matching (the same matches for any count); -1 = the top-level threads setting
@@ -33,5 +36,7 @@ class SfmOptions:
     def problems(self) -> list[str]:
         out = one_of(self, "matching", MATCHING) + one_of(self, "reconstruction", RECONSTRUCTION)
         out += one_of(self, "extractor", EXTRACTORS)
+        out += non_negative(self, "keyframe_min_images") + in_range(self, "keyframe_min_translation", 0, float("inf"))
+        out += in_range(self, "keyframe_min_rotation_deg", 0, 180)
         return out + positive(self, "max_num_features", "exhaustive_max_images", "sequential_overlap",
                               "pose_pairs_per_image", "retrieval_neighbors", "retrieval_words")

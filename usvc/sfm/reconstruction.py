@@ -1,7 +1,8 @@
 """Sparse reconstruction of the mapping images with pycolmap.
 
 Known poses are held fixed and only points are triangulated (COLMAP's point_triangulator);
-without poses a full incremental reconstruction runs instead.
+without poses a full incremental reconstruction runs instead. A dense posed capture is
+reconstructed from its keyframes only (usvc/sfm/keyframes.py).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import pycolmap
 
 from usvc.core.errors import SfmError
 from usvc.core.scene import Frame
+from usvc.sfm.keyframes import mapping_keyframes
 from usvc.sfm.opencv_extraction import write_opencv_features
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.pair_matching import colmap_matching, exhaustive_pairs, image_names, match_pairs
@@ -130,14 +132,16 @@ def matching_kwargs(opts: SfmOptions) -> dict:
 
 
 def match(frames: list[Frame], db_path: Path, work_dir: Path, opts: SfmOptions, has_poses: bool,
-          threads: int = 1) -> str:
-    """Match with the configured strategy; `auto` is exhaustive for small scenes, else pose-guided
+          threads: int = 1, capture_images: int | None = None) -> str:
+    """Match with the configured strategy; `auto` is exhaustive for small scenes (up to
+    sfm.exhaustive_max_images of `capture_images`, the capture's mapping frames, default
+    len(frames): keyframes of a dense capture are matched pose-guided), else pose-guided
     (with poses) or by retrieval (without: any file order). Exhaustive, pose-guided and retrieved
     pairs are matched on `threads` threads (see colmap_threads) with the bits of one
     (pair_matching); sequential matching runs on one."""
     mode = opts.matching
     if mode == "auto":
-        if len(frames) <= opts.exhaustive_max_images:
+        if (len(frames) if capture_images is None else capture_images) <= opts.exhaustive_max_images:
             mode = "exhaustive"
         else:
             mode = "poses" if has_poses else "retrieval"
@@ -211,19 +215,25 @@ def align_to_poses(rec: pycolmap.Reconstruction, frames: list[Frame], seed: int)
 
 def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmOptions,
                 has_poses: bool, threads: int) -> tuple[pycolmap.Reconstruction, dict]:
-    """Extract (on `threads` threads, see colmap_threads), match and triangulate (or map); returns
-    the model and timing/strategy stats."""
+    """Extract (on `threads` threads, see colmap_threads), match and triangulate (or map) the
+    mapping frames, or only their keyframes when the capture is posed and dense (mapping_keyframes);
+    returns the model and timing/strategy stats."""
+    capture_images = len(frames)
+    frames = mapping_keyframes(frames, opts, has_poses)
     if len(frames) < MIN_MAPPING_IMAGES:
         raise SfmError(
-            f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}: COLMAP keeps only points "
-            "seen in 3 or more images (tracks of two views are dropped), and a usable map wants dozens")
+            f"SfM needs at least {MIN_MAPPING_IMAGES} mapping images, got {len(frames)}"
+            + (f" keyframes of {capture_images} (lower sfm.keyframe_min_translation or sfm.keyframe_min_rotation_deg)"
+               if len(frames) < capture_images else "")
+            + ": COLMAP keeps only points seen in 3 or more images (tracks of two views are dropped), and a usable "
+            "map wants dozens")
     db_path = work_dir / "database.db"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     extract(frames, image_dir, db_path, opts, threads)
     timings["extract_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    strategy = match(frames, db_path, work_dir, opts, has_poses, threads)
+    strategy = match(frames, db_path, work_dir, opts, has_poses, threads, capture_images)
     timings["match_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     mode = opts.reconstruction
@@ -256,5 +266,5 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
             f"SfM triangulated only {rec.num_points3D()} points from {len(frames)} images "
             f"(sfm.min_points={opts.min_points}): too few matches, a degenerate scene or wrong poses"
         )
-    return rec, {"matching": strategy, "reconstruction": mode, **timings,
+    return rec, {"matching": strategy, "reconstruction": mode, "mapping_frames": capture_images, **timings,
                  **{f"pose_check_{k}": v for k, v in agreement.items() if k != "worst_images"}}
