@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_sfm import small_mini  # noqa: F401 (the 24-image prepared scene, a fixture)
 
 from usvc.core.scene import Camera, Frame
 from usvc.sfm.keyframes import mapping_keyframes, select_keyframes
@@ -102,22 +103,6 @@ def test_bad_thresholds_are_refused(field, value):
 def test_defaults_are_valid():
     assert SfmOptions().problems() == []
     assert SfmOptions(keyframe_min_translation=0, keyframe_min_rotation_deg=0, keyframe_min_images=0).problems() == []
-
-
-@pytest.fixture(scope="module")
-def small_mini(tmp_path_factory):
-    """A 24-image miniature scene, prepared (as tests/test_sfm.py's)."""
-    from usvc.generate.params import RoomParams
-    from usvc.generate.writer import generate_scene
-    from usvc.prepare.importers import load_scene
-    from usvc.prepare.working_images import prepare_scene
-
-    root = tmp_path_factory.mktemp("mini")
-    generate_scene(root / "raw", RoomParams(frames_per_map_sequence=12, n_query_frames=2, supersample=1))
-    prepared = root / "prepared"
-    prepared.mkdir()
-    prepare_scene(load_scene("ace", root / "raw", "mini", "given"), prepared, working_width=0)
-    return prepared
 
 
 @pytest.mark.slow
