@@ -4,21 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_sfm import small_mini  # noqa: F401 (the 24-image prepared scene, a fixture)
+from test_sfm import _look_at, small_mini  # noqa: F401 (small_mini: the 24-image prepared scene, a fixture)
 
 from usvc.core.scene import Camera, Frame
 from usvc.sfm.keyframes import mapping_keyframes, select_keyframes
 from usvc.sfm.options import SfmOptions
 
 CAM = Camera("PINHOLE", 64, 48, (50, 50, 32, 24))
-
-
-def _look_at(center, target):
-    z = (target - center) / np.linalg.norm(target - center)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ center
 
 
 def _orbit(n: int, arc_deg: float, radius: float = 2.0) -> list[Frame]:
