@@ -17,7 +17,7 @@ from usvc.core.artifact_names import LANDMARKS_H5
 from usvc.core.errors import UsvcError
 from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, MappingKeypoints, encode_descriptors, unit_descriptors
-from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
+from usvc.landmarks.landmarks_file import observation_keypoints, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
 from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.pnp import project_points
@@ -101,6 +101,67 @@ def test_tracks_and_landmarks_carry_every_keypoint_and_read_back(tmp_path: Path)
     back = read_landmarks(tmp_path / LANDMARKS_H5).observations.keypoints
     for name in ("image", "uv", "descriptor", "landmark"):
         assert np.array_equal(getattr(back, name), getattr(kp, name)), name
+
+
+def _observation_arrays(landmarks: Landmarks) -> dict[str, np.ndarray]:
+    obs = landmarks.observations
+    return {name: getattr(obs, name) for name in ("landmark", "image", "uv", "descriptor", "image_K", "image_size")}
+
+
+def test_observations_are_stored_as_their_keypoints_rows_and_read_back_the_same(tmp_path: Path):
+    import h5py
+
+    _, landmarks, _ = scene()
+    obs = landmarks.observations
+    # a landmark seen twice in one image (COLMAP's merged tracks have such): paired by position too
+    twice = replace(obs, landmark=obs.landmark.copy())
+    first_two = np.flatnonzero(twice.image == twice.image[0])[:2]
+    twice.landmark[first_two] = twice.landmark[first_two[0]]
+    kp_rows = [np.flatnonzero((obs.keypoints.image == obs.image[i]) & np.all(obs.keypoints.uv == obs.uv[i], axis=1)
+                              )[0] for i in first_two]
+    kp_landmark = obs.keypoints.landmark.copy()
+    kp_landmark[kp_rows] = twice.landmark[first_two[0]]
+    twice = replace(twice, keypoints=replace(obs.keypoints, landmark=kp_landmark))
+    for case in (landmarks, replace(landmarks, observations=twice)):
+        rows = observation_keypoints(case.observations)
+        assert rows is not None and len(np.unique(rows)) == len(rows)
+        write_landmarks(tmp_path / LANDMARKS_H5, case)
+        with h5py.File(tmp_path / LANDMARKS_H5) as h5:
+            assert "obs/keypoint" in h5 and "obs/descriptor" not in h5 and "obs/uv" not in h5
+        back = read_landmarks(tmp_path / LANDMARKS_H5)
+        for name, want in _observation_arrays(case).items():
+            got = getattr(back.observations, name)
+            assert got.dtype == want.dtype and np.array_equal(got, want), name
+
+
+def test_an_observation_that_is_no_keypoint_keeps_its_own_copy(tmp_path: Path):
+    import h5py
+
+    _, landmarks, _ = scene()
+    obs = landmarks.observations
+    moved = obs.uv.copy()
+    moved[3] += 0.25  # no keypoint is there
+    odd = replace(landmarks, observations=replace(obs, uv=moved))
+    assert observation_keypoints(odd.observations) is None
+    write_landmarks(tmp_path / LANDMARKS_H5, odd)
+    with h5py.File(tmp_path / LANDMARKS_H5) as h5:
+        assert "obs/keypoint" not in h5 and "obs/descriptor" in h5
+    back = read_landmarks(tmp_path / LANDMARKS_H5)
+    for name, want in _observation_arrays(odd).items():
+        assert np.array_equal(getattr(back.observations, name), want), name
+
+
+def test_observation_rows_outside_the_keypoints_are_refused(tmp_path: Path):
+    import h5py
+
+    _, landmarks, _ = scene()
+    write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
+    with h5py.File(tmp_path / LANDMARKS_H5, "a") as h5:
+        rows = h5["obs/keypoint"][()]
+        rows[0] = len(landmarks.observations.keypoints.image)
+        h5["obs/keypoint"][...] = rows
+    with pytest.raises(UsvcError, match="obs/keypoint names a row outside"):
+        read_landmarks(tmp_path / LANDMARKS_H5)
 
 
 def test_a_point_left_out_of_the_landmarks_leaves_its_keypoints_observing_nothing():

@@ -18,9 +18,11 @@ from usvc.core.h5_file import Field, read_h5, write_h5
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, MappingKeypoints
 
 # Version 2 adds the observations (obs/*, images/*), version 3 every keypoint of the mapping images
-# (keypoints/*); older files are still read, without what they lack.
-LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 3
-READABLE_VERSIONS = (1, 2, 3)
+# (keypoints/*), version 4 stores an observation that is one of those keypoints as its row
+# (obs/keypoint) instead of a second copy of its position and descriptor; older files are still
+# read, without what they lack.
+LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 LANDMARKS_SCHEMA: dict[str, Field] = {
     "xyz": Field("scene units", "position of the landmark: the triangulated SfM point (as in sfm/tracks.h5)", "world"),
@@ -31,9 +33,12 @@ LANDMARKS_SCHEMA: dict[str, Field] = {
     "track_length": Field("1", "mapping images that observed the point"),
     "obs/landmark": Field("1", "row of the landmark this observation is of; rows are grouped by obs/image"),
     "obs/image": Field("1", "mapping image of the observation: row of images/*"),
-    "obs/uv": Field("px", "the observation's SIFT keypoint; pixel centres at integer+0.5 (COLMAP), x right, y down",
-                    "image"),
-    "obs/descriptor": Field("1", "the observation's own SIFT descriptor (COLMAP's, uint8 encoding)"),
+    "obs/uv": Field("px", "the observation's SIFT keypoint; pixel centres at integer+0.5 (COLMAP), x right, y down "
+                          "(absent where obs/keypoint is written)", "image"),
+    "obs/descriptor": Field("1", "the observation's own SIFT descriptor (COLMAP's, uint8 encoding; absent where "
+                                 "obs/keypoint is written)"),
+    "obs/keypoint": Field("1", "row of keypoints/* that is the observation (its position and descriptor): written "
+                               "instead of obs/uv and obs/descriptor where every observation is one of the keypoints"),
     "images/name": Field("1", "mapping image name, relative to prepared/images"),
     "images/K": Field("px", "intrinsic matrix of the prepared (pinhole) mapping image", "camera->image"),
     "images/size": Field("px", "width, height of the prepared mapping image"),
@@ -56,8 +61,13 @@ def write_landmarks(path: Path, landmarks: Landmarks) -> None:
         h5["track_length"] = landmarks.track_length
         obs = landmarks.observations
         if obs is not None:
-            h5["obs/landmark"], h5["obs/image"], h5["obs/uv"] = obs.landmark, obs.image, obs.uv
-            h5.create_dataset("obs/descriptor", data=obs.descriptor, compression="gzip")
+            h5["obs/landmark"], h5["obs/image"] = obs.landmark, obs.image
+            rows = observation_keypoints(obs)
+            if rows is not None:  # each observation is one of the keypoints: stored once, there
+                h5["obs/keypoint"] = rows
+            else:
+                h5["obs/uv"] = obs.uv
+                h5.create_dataset("obs/descriptor", data=obs.descriptor, compression="gzip")
             h5.create_dataset("images/name", data=np.array(obs.image_names, dtype=object),
                               dtype=h5py.string_dtype())
             h5["images/K"], h5["images/size"] = obs.image_K, obs.image_size
@@ -67,16 +77,44 @@ def write_landmarks(path: Path, landmarks: Landmarks) -> None:
                 h5.create_dataset("keypoints/descriptor", data=kp.descriptor, compression="gzip")
 
 
-def _observations(h5: h5py.File) -> LandmarkObservations | None:
+def observation_keypoints(obs: LandmarkObservations) -> np.ndarray | None:
+    """The row of `obs.keypoints` that each observation is (the same image, landmark, position and
+    descriptor, bit for bit: the observations and the keypoints that observe a landmark, each sorted
+    by image, landmark and position, paired in order), or None where the keypoints are absent or the
+    two do not pair so."""
+    kp = obs.keypoints
+    observing = np.flatnonzero(kp.landmark >= 0) if kp is not None else np.zeros(0, np.int64)
+    if kp is None or len(obs.landmark) == 0 or len(observing) != len(obs.landmark):
+        return None
+    mine = np.lexsort((obs.uv[:, 1], obs.uv[:, 0], obs.landmark, obs.image))
+    theirs = observing[np.lexsort((kp.uv[observing, 1], kp.uv[observing, 0], kp.landmark[observing],
+                                   kp.image[observing]))]
+    rows = np.empty(len(mine), np.int64)
+    rows[mine] = theirs
+    same = (np.array_equal(kp.image[rows], obs.image) and np.array_equal(kp.landmark[rows], obs.landmark)
+            and np.array_equal(kp.uv[rows], obs.uv) and np.array_equal(kp.descriptor[rows], obs.descriptor))
+    return rows.astype(np.int32) if same else None
+
+
+def _observations(h5: h5py.File, path: Path) -> LandmarkObservations | None:
     if "obs" not in h5:
         return None
     names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["images/name"][()]]
+    keypoints = _keypoints(h5)
+    if "obs/keypoint" in h5:
+        if keypoints is None:
+            raise UsvcError(f"{path}: landmarks dataset obs/keypoint names rows of keypoints/*, which the file lacks")
+        rows = np.asarray(h5["obs/keypoint"][()], np.int64)
+        if len(rows) and (rows.min() < 0 or rows.max() >= len(keypoints.image)):
+            raise UsvcError(f"{path}: landmarks dataset obs/keypoint names a row outside 0..{len(keypoints.image) - 1}")
+        uv, descriptor = keypoints.uv[rows], keypoints.descriptor[rows]
+    else:
+        uv = np.asarray(h5["obs/uv"][()], np.float32).reshape(-1, 2)
+        descriptor = np.asarray(h5["obs/descriptor"][()], np.uint8).reshape(-1, 128)
     return LandmarkObservations(landmark=np.asarray(h5["obs/landmark"][()], np.int32),
-                                image=np.asarray(h5["obs/image"][()], np.int32),
-                                uv=np.asarray(h5["obs/uv"][()], np.float32).reshape(-1, 2),
-                                descriptor=np.asarray(h5["obs/descriptor"][()], np.uint8).reshape(-1, 128),
+                                image=np.asarray(h5["obs/image"][()], np.int32), uv=uv, descriptor=descriptor,
                                 image_names=names, image_K=np.asarray(h5["images/K"][()], np.float64),
-                                image_size=np.asarray(h5["images/size"][()], np.int32), keypoints=_keypoints(h5))
+                                image_size=np.asarray(h5["images/size"][()], np.int32), keypoints=keypoints)
 
 
 def _keypoints(h5: h5py.File) -> MappingKeypoints | None:
@@ -92,7 +130,7 @@ def _keypoints(h5: h5py.File) -> MappingKeypoints | None:
 # each row has (None: a single value): their declared shapes must agree before any is read.
 ROW_TABLES: tuple[dict[str, int | None], ...] = (
     {"xyz": 3, "descriptor": 128, "view_dir": 3, "view_angle_deg": None, "track_length": None},
-    {"obs/landmark": None, "obs/image": None, "obs/uv": 2, "obs/descriptor": 128},
+    {"obs/landmark": None, "obs/image": None, "obs/uv": 2, "obs/descriptor": 128, "obs/keypoint": None},
     {"images/name": None, "images/K": None, "images/size": 2},
     {"keypoints/image": None, "keypoints/uv": 2, "keypoints/descriptor": 128, "keypoints/landmark": None},
 )
@@ -137,7 +175,7 @@ def read_landmarks(path: Path | str) -> Landmarks:
                              view_angle_deg=np.asarray(h5["view_angle_deg"][()], np.float32),
                              track_length=np.asarray(h5["track_length"][()], np.int32),
                              image_short_side=int(h5.attrs.get("image_short_side", 0)),
-                             observations=_observations(h5))
+                             observations=_observations(h5, path))
         except UsvcError as exc:
             raise UsvcError(f"{path}: {exc}") from None
 
