@@ -12,7 +12,7 @@ from usvc.buffer.buffer_file import write_buffer
 from usvc.buffer.build import fill_buffer, fill_heldout, holdout_split, working_short_side
 from usvc.buffer.options import BufferOptions
 from usvc.core.artifact_names import BUFFER_H5, HOLDOUT_H5
-from usvc.core.scene_file import read_depth, read_scene_h5
+from usvc.core.scene_file import read_depths, read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.model.encoder import encoder_fingerprint
 from usvc.model.options import ModelOptions
@@ -35,7 +35,7 @@ def run(inputs: Inputs, out: Path, options: BufferOptions, model: ModelOptions, 
     scene = read_scene_h5(inputs.scene)
     frames, holdout = holdout_split(scene.split("train"), options.holdout_every)
     index = {f.name: i for i, f in enumerate(scene.frames)}
-    depths = [read_depth(inputs.scene, index[f.name]) for f in frames]
+    depths = read_depths(inputs.scene, [index[f.name] for f in frames])
     keypoints = read_scene_keypoints(inputs.keypoints)
     n_rendered = 0
     if options.rendered_views:
