@@ -358,6 +358,27 @@ def test_pose_checked_matches_are_the_per_image_matches_the_pose_explains():
     assert len(pose_checked_matches(landmarks, feats, CAM, R_TRUE, far, every, 2.0)) == 0
 
 
+def test_pose_checked_matches_take_the_most_covisible_images_when_capped():
+    """features_final_images: at most that many images are matched, those observing the most of the
+    given landmarks, and each keeps exactly the matches the uncapped pass finds in it."""
+    landmarks, feats = scene()
+    obs = landmarks.observations
+    seen = np.arange(len(landmarks))
+    every = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0)
+    capped = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0, max_images=len(MAPPING) - 1)
+    assert every.images == len(MAPPING) and capped.images == len(MAPPING) - 1
+    last = min(obs.image_slices(), key=lambda s: s[2] - s[1])[0]  # the image observing the fewest of them
+    only_last = np.isin(np.arange(len(landmarks)), obs.landmark[obs.image != last], invert=True)
+    assert 0 < len(capped) < len(every) and not only_last[capped.landmark].any()
+    pairs = lambda found: sorted(zip(found.keypoint.tolist(), found.landmark.tolist()))  # noqa: E731
+    rest = pairs(every)
+    for pair in pairs(capped):  # each kept image's matches are the uncapped pass's
+        rest.remove(pair)
+    assert len(rest) == len(every) - len(capped)
+    same = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0, max_images=len(MAPPING))
+    assert same.images == every.images and np.array_equal(same.keypoint, every.keypoint)
+
+
 def test_refinement_on_inliers_recovers_the_pose_and_fails_without_inliers():
     landmarks, feats = scene()
     xyz = landmarks.xyz

@@ -82,6 +82,7 @@ class FeatureMatchOptions:
     final: str = "confirmed"  # the answer's last pass: confirmed (`confirmed_pass`) | guided (none) | images (`images_pass`)
     threads: int = 1  # the query's threads: SIFT + PnP's pairs and the images pass's images side by side on them
     pnp: str = "poselib"  # the passes' LO-RANSAC PnP backend (`pnp.solve_pnp`): poselib | pycolmap
+    final_images: int = 32  # the last pass's mapping images, the most covisible first (0: every one)
 
 
 def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None,
@@ -93,7 +94,8 @@ def feature_options(options: RelocalizeOptions, short_side: int, device: str | N
                                ratio=options.features_ratio, max_error_px=options.features_max_error_px * scale,
                                min_inliers=options.features_min_inliers,
                                view_margin_deg=options.features_view_margin_deg, device=device,
-                               final=options.features_final, threads=threads, pnp=options.features_pnp)
+                               final=options.features_final, threads=threads, pnp=options.features_pnp,
+                               final_images=options.features_final_images)
 
 
 @dataclass

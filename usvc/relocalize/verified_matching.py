@@ -272,14 +272,16 @@ def _matching_sites(landmarks: Landmarks, image_descriptors: list[ByteRows] | No
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
                          seen: np.ndarray, max_error_px: float,
                          image_descriptors: list[ByteRows] | None = None, threads: int = 1,
-                         device: str | None = None) -> VerifiedMatches:
+                         device: str | None = None, max_images: int = 0) -> VerifiedMatches:
     """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
     keypoints matched as `verified_matches` matches them, but only to the mapping images that
     observe at least MIN_PAIR_INLIERS of the landmarks in `seen` (the rows the pose was found with)
     and only to their observations of landmarks in front of the camera and inside the photo; each
     pair's matches are verified by the pose instead of two-view geometry (the landmark projects
     within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
-    gives none. A keypoint matched in several images counts once per image, as in SIFT + PnP. Only
+    gives none. With `max_images` > 0 only that many of those images are matched: the ones that
+    observe the most of `seen` (the first in image order on ties), so the pass costs the same
+    however many photos made the map. A keypoint matched in several images counts once per image, as in SIFT + PnP. Only
     the keypoints within `max_error_px` of one of an image's landmarks under the pose are compared
     with that image's observations (about a third of them): the others could give no match the pose
     explains, and so take no part in the mutual test either. The images are matched on `threads`
@@ -291,8 +293,12 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     visible = in_image(camera, uv_lm, depth)
     in_seen = np.zeros(len(landmarks.xyz), bool)
     in_seen[np.asarray(seen, np.int64)] = True
-    chosen = [(obs.landmark[a:b], desc) for (_, a, b), desc in zip(slices, descs)
-              if int(in_seen[obs.landmark[a:b]].sum()) >= MIN_PAIR_INLIERS]
+    shared = np.add.reduceat(in_seen[obs.landmark], [a for _, a, _ in slices]).astype(np.int64) \
+        if slices else np.zeros(0, np.int64)  # each image's observations of `seen` (slices are contiguous, none empty)
+    rows = np.flatnonzero(shared >= MIN_PAIR_INLIERS)
+    if 0 < max_images < len(rows):  # the most covisible images, then back in image order
+        rows = np.sort(rows[np.argsort(-shared[rows], kind="stable")[:max_images]])
+    chosen = [(obs.landmark[slices[i][1]:slices[i][2]], descs[i]) for i in rows]
 
     query = ByteRows.of(feats.codes)
     scratch = ProductBlocks(max((len(rows) for rows, _ in chosen), default=0) * len(feats))
