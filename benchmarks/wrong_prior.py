@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 import usvc  # noqa: E402,F401  (first: it sets OpenMP's wait policy before torch loads)
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from _report import scene_of, write_report  # noqa: E402
@@ -103,6 +104,9 @@ def main() -> None:
     ap.add_argument("--weak", action="store_true", help="the perturbed prior has 5 inliers (below min_confidence)")
     ap.add_argument("--seed", type=int, default=0, help="the random axes and directions")
     ap.add_argument("--ransac-seed", type=int, default=0, help="the relocalizer's seed (the stage's `seed`)")
+    ap.add_argument("--option", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="relocalize options other than the defaults, e.g. features_retrieval_images=0")
+    ap.add_argument("--name", help="the report's name (default wrong_prior_<scene>[_weak])")
     args = ap.parse_args()
     perturbations = [(0.0, 0.0)]
     for item in args.perturb:
@@ -116,7 +120,13 @@ def main() -> None:
     names = [f.name for f in scene.split("test")]
     photos = [(f.image_path, f.camera) for f in scene.split("test")]
     radius, median_depth = scene_radius(paths), read_median_depth(paths.tracks_file)
-    reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(), device="cpu", seed=args.ransac_seed)
+    options = {}
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or key not in RelocalizeOptions.__dataclass_fields__:
+            raise SystemExit(f"--option {item!r}: expected KEY=VALUE with KEY a relocalize option")
+        options[key] = yaml.safe_load(value)
+    reloc = Relocalizer(paths.map_file, options=RelocalizeOptions(**options), device="cpu", seed=args.ransac_seed)
     rows, reference = [], None
     for degrees, shift in perturbations:
         answers, records, perturbed_count = run(reloc, photos, names, degrees, shift, args.weak and degrees + shift > 0,
@@ -141,8 +151,8 @@ def main() -> None:
               f"{100 * row['acc_rel_2cm_2deg']:.1f} % (1cm,1deg) {100 * row['acc_rel_1cm_1deg']:.1f} %, median "
               f"{row['median_trans_rel_cm']:.3f} rel cm; refused {row['refused']}; paths {row['paths']}; "
               f"same as unperturbed {same} of {len(names)}")
-    name = "wrong_prior_" + scene_of(args.scene_dir) + ("_weak" if args.weak else "")
-    report = {"scene": scene.name, "queries": len(names), "weak": args.weak, "seed": args.seed,
+    name = args.name or "wrong_prior_" + scene_of(args.scene_dir) + ("_weak" if args.weak else "")
+    report = {"scene": scene.name, "queries": len(names), "weak": args.weak, "seed": args.seed, "options": options,
               "scene_radius": radius, "rows": rows}
     print(f"-> {write_report(name, report)}")
 

@@ -12,6 +12,8 @@
 #   bash scripts/device_check.sh             # there (the checkout and .whl/ carried beside it)
 #   bash scripts/device_check.sh --real bird # the same, then bird from its photos (carry data/raw/bird)
 #   bash scripts/device_check.sh --quick     # anywhere, in minutes: the same steps, short (CPU too)
+#   bash scripts/device_check.sh --scaling 3840  # instead of those steps: the generated room at 3,840
+#                                            # mapping frames, every stage on the device (benchmarks/scaling.py)
 #
 # Everything goes to $OUT (default results/device/): device.txt (the card, torch, COLMAP), steps.txt,
 # benchmarks/*.json (each benchmark's report), logs/<step>.log. Where DIR (--wheels, default .whl/)
@@ -25,6 +27,7 @@ quick=0
 dry=0
 budget=""
 real=()
+scaling=""
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --quick) quick=1 ;;
@@ -32,8 +35,9 @@ while [[ $# -gt 0 ]]; do
         --wheels) shift; wheels="${1:?--wheels needs a folder}" ;;
         --budget) shift; budget="${1:?--budget needs seconds}" ;;
         --real) shift; real+=("${1:?--real needs a scene name}") ;;
-        -h|--help) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
-                   echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR] [--budget S] [--real NAME]..."
+        --scaling) shift; scaling="${1:?--scaling needs a number of mapping frames}" ;;
+        -h|--help) sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'
+                   echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR] [--budget S] [--real NAME]... [--scaling FRAMES]"
                    exit 0 ;;
         *) echo "error: unknown argument $1" >&2; exit 2 ;;
     esac
@@ -41,6 +45,8 @@ while [[ $# -gt 0 ]]; do
 done
 [[ -z "$budget" ]] && budget=$([[ $quick == 1 ]] && echo 900 || echo 570)
 [[ "$budget" =~ ^[0-9]+$ && "$budget" -gt 0 ]] || { echo "error: --budget must be whole seconds > 0, got '$budget'" >&2; exit 2; }
+[[ -z "$scaling" || ( "$scaling" =~ ^[0-9]+$ && $((scaling % 2)) == 0 && "$scaling" -ge 4 ) ]] \
+    || { echo "error: --scaling takes an even number of mapping frames >= 4, got '$scaling'" >&2; exit 2; }
 for name in "${real[@]}"; do
     [[ "$name" =~ ^[A-Za-z0-9_-]+$ ]] || { echo "error: --real takes a scene name, got '$name'" >&2; exit 2; }
     [[ -f "$REPO/conf/scene/$name.yaml" ]] || { echo "error: --real $name: no conf/scene/$name.yaml" >&2; exit 2; }
@@ -57,7 +63,9 @@ work="${USVC_DEVICE_WORK:-${TMPDIR:-/tmp}/usvc-device-work}"
 steps=()
 add() { steps+=("$1|$2|${*:3}"); }
 cuda_tests="$(grep -lE 'pytest\.mark\.cuda' "$REPO"/tests/test_*.py | sed "s|$REPO/||" | tr '\n' ' ')"
-if [[ $quick == 1 ]]; then
+if [[ -n "$scaling" ]]; then  # the scaling figure alone: every stage of the room at that size, on the device
+    add "scaling_$scaling" "$budget" "$python benchmarks/scaling.py --frames $scaling --threads $(nproc) --name scaling_device_$scaling -- device=auto"
+elif [[ $quick == 1 ]]; then
     add pytest_cuda 120 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
     add pipeline 400 "$python benchmarks/device_pipeline.py --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
     add query 120 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"

@@ -8,11 +8,13 @@ import numpy as np
 
 from usvc.core.errors import UsvcError
 from usvc.core.geometry import camera_centers
+from usvc.core.vlad import vocabulary
 from usvc.landmarks.landmark_table import (
     LandmarkObservations,
     Landmarks,
     MappingKeypoints,
     encode_descriptors,
+    image_descriptors,
     unit_descriptors,
 )
 from usvc.landmarks.options import LandmarksOptions
@@ -87,6 +89,15 @@ def mapping_keypoints(tracks: Tracks, row_of_point: np.ndarray) -> MappingKeypoi
                             landmark=landmark.astype(np.int32))
 
 
+def retrieval_words(obs: LandmarkObservations, words: int, seed: int = 0) -> np.ndarray | None:
+    """`words` visual words of the mapping images' descriptors (seeded k-means: the same words for
+    the same model), or None with no words asked for or no descriptor."""
+    descriptors = [d for d in image_descriptors(obs) if len(d)]
+    if words <= 0 or not descriptors:
+        return None
+    return vocabulary(descriptors, words, seed)
+
+
 def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: LandmarksOptions,
                     image_sizes: np.ndarray | None = None) -> Landmarks:
     """The landmarks of one SfM model (points in the order of tracks.h5, filtered by `opts`), with
@@ -110,7 +121,8 @@ def build_landmarks(tracks: Tracks, scene: str, image_short_side: int, opts: Lan
     return Landmarks(scene=scene, xyz=tracks.xyz[keep_idx].astype(np.float64), descriptor=encode_descriptors(desc),
                      view_dir=view_dir, view_angle_deg=view_angle,
                      track_length=length[keep_idx].astype(np.int32), image_short_side=int(image_short_side),
-                     observations=observations)
+                     observations=observations,
+                     words=None if observations is None else retrieval_words(observations, opts.retrieval_words))
 
 
 def landmark_stats(landmarks: Landmarks, tracks: Tracks) -> dict:

@@ -120,6 +120,7 @@ class Landmarks:
     track_length: np.ndarray  # (N,) int32 observations of the point
     image_short_side: int  # median short side (px) of the mapping images the descriptors come from
     observations: LandmarkObservations | None = None  # the tracks (absent in files of format version 1)
+    words: np.ndarray | None = None  # (W,128) float32 visual words of the mapping photos' unit descriptors (`usvc.core.vlad`), or None
 
     def __post_init__(self) -> None:
         n = len(self.xyz)
@@ -136,6 +137,10 @@ class Landmarks:
             bad = self.observations.problems(n)
             if bad:
                 raise UsvcError(f"landmarks of scene {self.scene!r} have inconsistent observations: {'; '.join(bad)}")
+        if self.words is not None and (self.words.ndim != 2 or self.words.shape[1] != 128 or len(self.words) == 0
+                                       or not np.isfinite(self.words).all()):
+            raise UsvcError(f"landmarks of scene {self.scene!r}: retrieval words of shape {self.words.shape}, "
+                            "expected (W, 128) finite with W >= 1")
         if self.image_short_side <= 0:
             raise UsvcError(f"landmarks of scene {self.scene!r}: image_short_side must be positive, "
                             f"got {self.image_short_side}")
@@ -154,3 +159,14 @@ def unit_descriptors(descriptor: np.ndarray) -> np.ndarray:
 def encode_descriptors(unit: np.ndarray) -> np.ndarray:
     """Unit float descriptors -> COLMAP's uint8 encoding."""
     return np.clip(np.round(np.asarray(unit, dtype=np.float64) * DESCRIPTOR_SCALE), 0, 255).astype(np.uint8)
+
+
+def image_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
+    """Each mapping image's SIFT descriptors as unit float32 rows: every keypoint where the
+    observations carry them, else its observations; in image order (images without any: empty)."""
+    rows = obs.keypoints if obs.keypoints is not None else obs
+    out = [np.zeros((0, 128), np.float32) for _ in obs.image_names]
+    starts = np.flatnonzero(np.r_[True, rows.image[1:] != rows.image[:-1]]) if len(rows.image) else np.zeros(0, int)
+    for a, b in zip(starts, np.r_[starts[1:], len(rows.image)]):
+        out[int(rows.image[a])] = unit_descriptors(rows.descriptor[a:b])
+    return out

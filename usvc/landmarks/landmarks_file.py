@@ -19,8 +19,8 @@ from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, Mappi
 
 # Version 2 adds the observations (obs/*, images/*), version 3 every keypoint of the mapping images
 # (keypoints/*), version 4 stores an observation that is one of those keypoints as its row
-# (obs/keypoint) instead of a second copy of its position and descriptor; older files are still
-# read, without what they lack.
+# (obs/keypoint) instead of a second copy of its position and descriptor, and the visual words of
+# the mapping images (retrieval/words); older files are still read, without what they lack.
 LANDMARKS_FORMAT, LANDMARKS_VERSION = "usvc-landmarks", 4
 READABLE_VERSIONS = (1, 2, 3, 4)
 
@@ -48,6 +48,8 @@ LANDMARKS_SCHEMA: dict[str, Field] = {
                           "image"),
     "keypoints/descriptor": Field("1", "the keypoint's SIFT descriptor (COLMAP's, uint8 encoding)"),
     "keypoints/landmark": Field("1", "row of the landmark the keypoint observes, -1 for none"),
+    "retrieval/words": Field("1", "visual words: k-means centres of the mapping images' unit SIFT descriptors, over "
+                                  "which a query's VLAD finds the mapping images most like it"),
 }
 
 
@@ -59,6 +61,8 @@ def write_landmarks(path: Path, landmarks: Landmarks) -> None:
         h5.create_dataset("descriptor", data=landmarks.descriptor, compression="gzip")
         h5["view_dir"], h5["view_angle_deg"] = landmarks.view_dir, landmarks.view_angle_deg
         h5["track_length"] = landmarks.track_length
+        if landmarks.words is not None:
+            h5["retrieval/words"] = np.asarray(landmarks.words, np.float32)
         obs = landmarks.observations
         if obs is not None:
             h5["obs/landmark"], h5["obs/image"] = obs.landmark, obs.image
@@ -133,6 +137,7 @@ ROW_TABLES: tuple[dict[str, int | None], ...] = (
     {"obs/landmark": None, "obs/image": None, "obs/uv": 2, "obs/descriptor": 128, "obs/keypoint": None},
     {"images/name": None, "images/K": None, "images/size": 2},
     {"keypoints/image": None, "keypoints/uv": 2, "keypoints/descriptor": 128, "keypoints/landmark": None},
+    {"retrieval/words": 128},
 )
 
 
@@ -175,7 +180,9 @@ def read_landmarks(path: Path | str) -> Landmarks:
                              view_angle_deg=np.asarray(h5["view_angle_deg"][()], np.float32),
                              track_length=np.asarray(h5["track_length"][()], np.int32),
                              image_short_side=int(h5.attrs.get("image_short_side", 0)),
-                             observations=_observations(h5, path))
+                             observations=_observations(h5, path),
+                             words=np.asarray(h5["retrieval/words"][()], np.float32) if "retrieval/words" in h5
+                             else None)
         except UsvcError as exc:
             raise UsvcError(f"{path}: {exc}") from None
 

@@ -18,7 +18,8 @@ class LandmarksOptions:
     min_track_length: int = 2  # points seen in fewer mapping images are left out
     max_error_px: float = 4.0  # points whose mean reprojection error exceeds this are left out (px of the mapping images)
     max_landmarks: int = 0  # keep at most this many (longest tracks first); 0 = all
+    retrieval_words: int = 32  # visual words clustered from the mapping photos' SIFT, for finding the mapping photos most like a query (VLAD: relocalize.features_retrieval_images); 0 = none
 
     def problems(self) -> list[str]:
         out = one_of(self, "descriptor", DESCRIPTORS) + positive(self, "min_track_length", "max_error_px")
-        return out + non_negative(self, "max_landmarks")
+        return out + non_negative(self, "max_landmarks", "retrieval_words")

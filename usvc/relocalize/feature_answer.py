@@ -18,6 +18,7 @@ from usvc.relocalize.camera_checks import stretch_verdict
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_job import Job, QueryFeatureSet
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, FeatureResult, feature_options, refine_by_features
+from usvc.relocalize.image_retrieval import Retrieved
 from usvc.relocalize.last_pass import last_pass
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_evidence import QueryEvidence
@@ -40,7 +41,7 @@ class FeatureAnswers:
 
     def _features(self, found_set: QueryFeatureSet, global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None,
                   camera: Camera, dense, check_focal: bool,
-                  source: str = "") -> tuple[FeatureResult, str, Camera, QueryEvidence]:
+                  source: str = "", retrieved: Retrieved = Retrieved()) -> tuple[FeatureResult, str, Camera, QueryEvidence]:
         """Refinement by features on the undistorted photo's features (`found_set`: found on the
         photo resized to the mapping images' short side when larger; `global_pairs` gives their
         matches to every landmark when they are being found already); returns the result, why it is not trusted ("") and the camera it used,
@@ -62,7 +63,7 @@ class FeatureAnswers:
         evidence = QueryEvidence(self.landmarks, self._landmark_desc, self._observation_desc, feats, opts, camera,
                                  self.seed, use_global=self.prior, global_pairs=global_pairs,
                                  landmark_bytes=self._landmark_bytes, keypoint_desc=self._keypoint_desc,
-                                 focal_known=check_focal)
+                                 focal_known=check_focal, retrieved=retrieved)
         prior = (dense.R, dense.t) if dense.success and self.prior else (None, None)
         verdict = None  # the features' focal verdict needs only the matches to every landmark: with more than
         if check_focal and self.options.focal_tolerance > 0 and evidence.use_global:  # one thread, it is
@@ -100,7 +101,8 @@ class FeatureAnswers:
         assert self.landmarks is not None
         found = refine_by_features(self.landmarks, self._landmark_desc, feats, camera, prior[0], prior[1], opts,
                                    self.seed, verified=evidence.verified, use_global=evidence.use_global,
-                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior, agreement=agreement)
+                                   global_pairs=evidence.global_pairs, weak_prior=weak_prior, agreement=agreement,
+                                   global_candidates=evidence.global_candidates())
         found = last_pass(found, self.landmarks, feats, camera, opts, self._observation_desc)
         found.verified = evidence.verified_record()
         found.verified_seconds = evidence.verified_seconds()

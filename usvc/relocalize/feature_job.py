@@ -117,6 +117,8 @@ def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extract
 
 
 def global_match_job(landmark_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
-                     background: bool | None = None, landmark_bytes: ByteRows | None = None) -> Job:
-    """`global_matches` (the keypoints' matches to every landmark, products on `device`), as a `Job`."""
-    return Job(global_matches, landmark_desc, feats, ratio, device, landmark_bytes, background=background)
+                     background: bool | None = None, landmark_bytes: ByteRows | None = None,
+                     rows: np.ndarray | None = None) -> Job:
+    """`global_matches` (the keypoints' matches to every landmark, or to landmark `rows`, products on
+    `device`), as a `Job`."""
+    return Job(global_matches, landmark_desc, feats, ratio, device, landmark_bytes, rows, background=background)

@@ -208,7 +208,18 @@ def guided_matches(lm_uv: np.ndarray, lm_desc: np.ndarray, feats: QueryFeatures,
 
 
 def global_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
-                   lm_bytes: ByteRows | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   lm_bytes: ByteRows | None = None, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`landmark_matches` against every landmark, or only against landmark `rows` (sorted: those the
+    mapping photos retrieved for the query observe, `image_retrieval`), the landmark rows returned
+    being rows of the whole table either way."""
+    if rows is None:
+        return landmark_matches(lm_desc, feats, ratio, device, lm_bytes)
+    li, ki = landmark_matches(lm_desc[rows], feats, ratio, device, None if lm_bytes is None else lm_bytes.take(rows))
+    return rows[li], ki
+
+
+def landmark_matches(lm_desc: np.ndarray, feats: QueryFeatures, ratio: float, device: str | None = None,
+                     lm_bytes: ByteRows | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(landmark rows, keypoint rows): each keypoint's nearest landmark by descriptor, ratio test
     against the second nearest landmark, mutual (the keypoint is also the landmark's nearest: the
     first keypoint that reaches the landmark's largest similarity). `lm_desc`: the landmarks'
@@ -348,11 +359,13 @@ def _from_correspondences(path: str, keypoint: np.ndarray, rows: np.ndarray, rec
 
 def from_global(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFeatures, camera: Camera,
                 opts: FeatureMatchOptions, seed: int = 0,
-                matches: tuple[np.ndarray, np.ndarray] | None = None) -> FeatureResult:
+                matches: tuple[np.ndarray, np.ndarray] | None = None, candidates: int | None = None) -> FeatureResult:
     """The query's keypoints matched against every landmark's one descriptor (`matches`, when
-    already computed: `global_matches`' landmark and keypoint rows), PnP, then tightened."""
+    already computed: `global_matches`' landmark and keypoint rows, against `candidates` landmarks:
+    those of the photos retrieved for the query), PnP, then tightened."""
     li, ki = matches if matches is not None else global_matches(lm_desc, feats, opts.ratio, opts.device)
-    record = {"kind": "global", "radius_px": None, "candidates": int(len(landmarks)), "matches": int(len(li))}
+    record = {"kind": "global", "radius_px": None, "matches": int(len(li)),
+              "candidates": int(len(landmarks) if candidates is None or matches is None else candidates)}
     return _from_correspondences("global", ki, li, record, landmarks, lm_desc, feats, camera, opts, seed)
 
 
@@ -392,7 +405,8 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
                        verified: Callable[[], VerifiedMatches | None] | None = None, use_global: bool = True,
                        global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
                        weak_prior: bool = False,
-                       agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None) -> FeatureResult:
+                       agreement: Callable[[FeatureResult], tuple[int, int] | None] | None = None,
+                       global_candidates: int | None = None) -> FeatureResult:
     """The pose of the query whose features are `feats` (pixels of `camera`'s image): guided passes
     from the learned pose (R0, t0) when there is one; when they find no pose (or there is no prior,
     or the prior is `weak_prior`: too few of the map's cells agree with it, so the guided passes
@@ -404,14 +418,15 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
     matches to every landmark a result explains, and how many their own pose explains; None when
     they give no pose), a guided winner that did not compete with them is checked: one that explains
     fewer than AGREEMENT of what their own pose does competes with the global hypothesis, and the
-    guided hypothesis's record says what the check found."""
+    guided hypothesis's record says what the check found. `global_candidates`: how many landmarks
+    `global_pairs` compared (those of the photos retrieved for the query; None: every one)."""
     hypotheses = []
     if R0 is not None and t0 is not None:
         hypotheses.append(from_prior(landmarks, lm_desc, feats, camera, R0, t0, opts, seed))
     guided = bool(hypotheses) and hypotheses[0].success
     if use_global and (not guided or weak_prior):
         hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
-                                      global_pairs() if global_pairs is not None else None))
+                                      global_pairs() if global_pairs is not None else None, global_candidates))
     if not guided:
         found = verified() if verified is not None else None
         if found is not None:
@@ -423,6 +438,6 @@ def refine_by_features(landmarks: Landmarks, lm_desc: np.ndarray, feats: QueryFe
             hypotheses[0].agreement = {"global_matches_explained": agree[0], "by_their_own_pose": agree[1]}
             if agree[0] < AGREEMENT * agree[1]:  # a wrong start: the matches to every landmark get their say
                 hypotheses.append(from_global(landmarks, lm_desc, feats, camera, opts, seed,
-                                              global_pairs() if global_pairs is not None else None))
+                                              global_pairs() if global_pairs is not None else None, global_candidates))
             best = best_hypothesis(hypotheses)
     return best

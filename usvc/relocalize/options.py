@@ -60,6 +60,7 @@ class RelocalizeOptions:
     features_pnp: str = "poselib"  # LO-RANSAC PnP of the guided and global passes: poselib (PoseLib's: about half COLMAP's time on their nearly all-inlier matches, the same figures on mini and office, bird's within a query: docs/results.md) | pycolmap (COLMAP's); SIFT + PnP's own evidence keeps COLMAP's, as the baseline registers a query
     features_view_margin_deg: float = 45.0  # landmarks are matched when seen up to this much outside the directions they were mapped from
     features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 20-64 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
+    features_retrieval_images: int = 64  # prior=learned: the query's matches to "every landmark" and SIFT + PnP's fallback go to this many mapping photos, those most like it (VLAD over the landmarks' words), and their landmarks; a map with no more photos is searched whole (docs/method.md); 0 = every photo
     features_final_images: int = 32  # the confirmed or images last pass matches at most this many mapping images, those that observe the most of the answer's landmarks (a query's cost then does not grow with the photos that made the map: docs/speed.md); 0 = every one that observes 15 of them
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
@@ -77,6 +78,8 @@ class RelocalizeOptions:
         out += in_range(self, "features_ratio", 0.0, 1.0)
         if self.features_min_inliers < 4:
             out.append(f"features_min_inliers={self.features_min_inliers!r} must be >= 4 (a pose needs 4 points)")
+        if self.features_retrieval_images < 0:
+            out.append(f"features_retrieval_images={self.features_retrieval_images!r} must be >= 0 (0: every photo)")
         if self.features_final_images < 0:
             out.append(f"features_final_images={self.features_final_images!r} must be >= 0 (0: every image)")
         if self.features_min_inliers_alone < 0:

@@ -15,6 +15,7 @@ from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
 from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
+from usvc.relocalize.image_retrieval import Retrieved
 from usvc.relocalize.pnp import reprojection_inliers
 from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.verified_matching import HeldKeypointDescriptors, VerifiedMatches, verified_matches
@@ -31,12 +32,14 @@ class QueryEvidence:
                  use_global: bool = True,
                  global_pairs: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
                  landmark_bytes: ByteRows | None = None,
-                 keypoint_desc: HeldKeypointDescriptors | None = None, focal_known: bool = True) -> None:
+                 keypoint_desc: HeldKeypointDescriptors | None = None, focal_known: bool = True,
+                 retrieved: Retrieved = Retrieved()) -> None:
         self.landmarks, self.landmark_desc, self.observation_desc = landmarks, landmark_desc, observation_desc
         self.keypoint_desc = keypoint_desc  # the mapping keypoints' descriptors, held once per map
         self.focal_known = focal_known  # the photo's focal length was given (SIFT + PnP's pairs then verify calibrated)
         self.landmark_bytes = landmark_bytes  # the landmarks' bytes for the global matches' int8 products
         self.feats, self.opts, self.camera, self.seed = feats, opts, camera, seed
+        self.retrieved = retrieved  # the mapping photos (and their landmarks) the query is matched against
         self.use_global = use_global or landmarks.observations is None
         self._global: tuple[np.ndarray, np.ndarray] | None = None
         self._global_source = global_pairs
@@ -45,12 +48,16 @@ class QueryEvidence:
         self._global_focal: tuple[FocalPose | None] | None = None
 
     def global_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """(landmark rows, keypoint rows) of the matches to every landmark."""
+        """(landmark rows, keypoint rows) of the matches to every landmark (those of the retrieved photos)."""
         if self._global is None:
             self._global = self._global_source() if self._global_source is not None \
                 else global_matches(self.landmark_desc, self.feats, self.opts.ratio, self.opts.device,
-                                    self.landmark_bytes)
+                                    self.landmark_bytes, self.retrieved.landmarks)
         return self._global
+
+    def global_candidates(self) -> int:
+        """How many landmarks the matches to every landmark compare: those of the retrieved photos."""
+        return len(self.landmarks) if self.retrieved.landmarks is None else len(self.retrieved.landmarks)
 
     def global_focal_pose(self) -> FocalPose | None:
         """P4Pf (pose and focal length) on the matches to every landmark, found once: the features'
@@ -81,7 +88,7 @@ class QueryEvidence:
             self._verified = verified_matches(self.landmarks, self.feats, self.camera, self.seed,
                                               self.observation_desc, self.opts.threads, self.opts.device,
                                               self.keypoint_desc.get() if self.keypoint_desc is not None else None,
-                                              self.focal_known)
+                                              self.focal_known, self.retrieved.images)
         return self._verified
 
     def verified_record(self) -> dict | None:

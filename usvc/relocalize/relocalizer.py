@@ -41,6 +41,7 @@ from usvc.relocalize.byte_products import ByteRows, scaled
 from usvc.relocalize.device_matching import matching_device
 from usvc.relocalize.feature_answer import FeatureAnswers
 from usvc.relocalize.feature_refinement import FeatureResult
+from usvc.relocalize.image_retrieval import ImageRetrieval, Retrieved
 from usvc.relocalize.focal_verdicts import (
     FOCAL_UNCHECKED,
     FOCAL_UNCHECKED_MAP,
@@ -139,8 +140,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                      map_path, 100 * (np.exp(float(error)) - 1), self.options.focal_tolerance)
         self.keypoints_xyz = map_keypoints(header)
         depth = self.metadata.get("median_depth")
-        self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 \
-            else 1.0
+        self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 else 1.0
         self.refine_options = refine_options(self.options)
         self.refine = self.options.refine == "keypoints" and self.keypoints_xyz is not None
         if self.options.refine == "keypoints" and self.keypoints_xyz is None:
@@ -176,6 +176,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         self._observation_desc = observation_descriptors(found.observations) if found.observations is not None \
             else None
         self._keypoint_desc = HeldKeypointDescriptors(found.observations)  # SIFT + PnP's matching reads them
+        self._retrieval = ImageRetrieval(found)  # the mapping photos most like a query
         if not self.prior and found.observations is None:
             raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
                             "(format version 1): rebuild them with the landmarks stage")
@@ -345,13 +346,15 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         else:  # no learned pose (prior=none, or no focal length from the map): features may still find one
             result = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
         t3 = time.perf_counter()
-        found_set, global_pairs = None, None
-        if job is not None:  # the features, and (on the worker, while the guided passes run) their
-            found_set = job.result()  # matches to every landmark where a verdict or a fallback needs them
+        found_set, global_pairs, retrieved = None, None, Retrieved()
+        if job is not None:  # the features, and (on the worker, while the guided passes run) their matches
+            found_set = job.result()  # to every landmark (retrieved) where a verdict or a fallback needs them
+            if self.prior:  # the mapping photos most like it bound those matches and the fallback: `image_retrieval`
+                retrieved = self._retrieval.retrieve(found_set.feats, self.options.features_retrieval_images)
             if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
                 global_pairs = global_match_job(self._landmark_desc, found_set.feats, self.options.features_ratio,
-                                                matching_device(self.device),
-                                                landmark_bytes=self._landmark_bytes).result
+                                                matching_device(self.device), landmark_bytes=self._landmark_bytes,
+                                                rows=retrieved.landmarks).result
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.
@@ -372,7 +375,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
                 given = full_camera
             assert found_set is not None
             feature, feature_rejected, full_camera, feature_evidence = self._features(
-                found_set, global_pairs, full_camera, result, intrinsics is not None, intrinsics_source)
+                found_set, global_pairs, full_camera, result, intrinsics is not None, intrinsics_source, retrieved)
             if intrinsics is None and feature.success and not feature_rejected and not feature_evidence.focal_estimated \
                     and not (camera is not None and result.num_inliers >= self.options.min_confidence * hc * wc):
                 feature_rejected = self._unsupported_focal(full_camera, result.num_inliers, hc * wc, camera is not None)

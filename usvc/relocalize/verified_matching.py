@@ -193,7 +193,7 @@ def _per_image(landmarks: Landmarks, image_descriptors: list[ByteRows] | None
 def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, seed: int = 0,
                      image_descriptors: list[ByteRows] | None = None, threads: int = 1,
                      device: str | None = None, keypoint_descriptors: list[ByteRows] | None = None,
-                     focal_known: bool = True) -> VerifiedMatches:
+                     focal_known: bool = True, images: np.ndarray | None = None) -> VerifiedMatches:
     """The query's correspondences to the landmarks through every mapping image (see the module).
     `camera` is the query's (pixels of the feature image). With `focal_known` (given intrinsics)
     its focal length is a prior, as in SIFT + PnP's database: COLMAP verifies each pair by an
@@ -209,9 +209,13 @@ def verified_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera,
     held once per map. Each image is matched and its pair verified as one task, the tasks on
     `threads` threads (numpy's products and COLMAP's RANSAC release Python's lock; each pair has
     its own seeded RANSAC, so the matches are the same bits whatever the count). With a torch
-    `device` (a GPU) the descriptor products run there."""
+    `device` (a GPU) the descriptor products run there. `images` (rows of the mapping images, e.g.
+    those retrieved for the query) limits the matching to them; None: every one."""
     t0 = time.perf_counter()
     obs, sites = _matching_sites(landmarks, image_descriptors, keypoint_descriptors)
+    if images is not None:
+        wanted = set(np.asarray(images, np.int64).tolist())
+        sites = [site for site in sites if site[0] in wanted]
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.random_seed = int(seed)
     options.ransac.max_num_trials = MAX_PAIR_TRIALS
