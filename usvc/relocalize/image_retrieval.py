@@ -38,6 +38,8 @@ class ImageRetrieval:
         obs = landmarks.observations
         self.images = 0 if obs is None else len(obs.image_names)
         self._codes: np.ndarray | None = None
+        # each image's observations (rows of obs), so a query's landmarks cost its photos' observations only
+        self._slices = {} if obs is None else {image: (a, b) for image, a, b in obs.image_slices()}
 
     @property
     def available(self) -> bool:
@@ -62,6 +64,7 @@ class ImageRetrieval:
         query = vlad(unit_descriptors(feats.codes), words)
         similarity = self.codes() @ query
         images = np.sort(np.lexsort((np.arange(self.images), -similarity))[:k])
-        obs = self.landmarks.observations
-        rows = np.unique(obs.landmark[np.isin(obs.image, images)]).astype(np.int64)
+        observed = self.landmarks.observations.landmark
+        rows = np.unique(np.concatenate([observed[slice(*self._slices[i])] for i in images if i in self._slices]
+                                        or [np.zeros(0, np.int64)])).astype(np.int64)
         return Retrieved(images.astype(np.int64), rows)
