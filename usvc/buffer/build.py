@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -95,7 +95,8 @@ class _PlannedView:
 
 
 def _planned_views(frames: list[Frame], opts: BufferOptions, short_side: int, seed: int,
-                   keypoints: SceneKeypoints | None, depths: list[np.ndarray | None] | None) -> Iterator[_PlannedView]:
+                   keypoints: SceneKeypoints | None,
+                   depths: Sequence[np.ndarray | None] | None) -> Iterator[_PlannedView]:
     """The views in buffer order, with their random draws: what fill_buffer's loop drew, in its
     order, except the encoder pass (a view's cell grid follows from its size)."""
     rng = np.random.default_rng(seed)
@@ -184,7 +185,7 @@ def _encoded(encoder: Encoder, plans: Iterator[_PlannedView], precision: str, de
 def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, short_side: int, seed: int = 0,
                 device: str = "cpu",
                 keypoints: SceneKeypoints | None = None,
-                depths: list[np.ndarray | None] | None = None,
+                depths: Sequence[np.ndarray | None] | None = None,
                 mapping_images: int | None = None) -> TrainingBuffer:
     """Repeated passes over the mapping images with fresh augmentation until the buffer holds
     `opts.cells_for(mapping_images)` cells (`mapping_images`: the photos the budget counts, by

@@ -12,7 +12,7 @@ from usvc.buffer.buffer_file import write_buffer
 from usvc.buffer.build import fill_buffer, fill_heldout, holdout_split, working_short_side
 from usvc.buffer.options import BufferOptions
 from usvc.core.artifact_names import BUFFER_H5, HOLDOUT_H5
-from usvc.core.scene_file import read_depths, read_scene_h5
+from usvc.core.scene_file import DepthMaps, read_scene_h5
 from usvc.keypoints.keypoints_file import read_scene_keypoints
 from usvc.model.encoder import encoder_fingerprint
 from usvc.model.options import ModelOptions
@@ -35,19 +35,20 @@ def run(inputs: Inputs, out: Path, options: BufferOptions, model: ModelOptions, 
     scene = read_scene_h5(inputs.scene)
     frames, holdout = holdout_split(scene.split("train"), options.holdout_every)
     index = {f.name: i for i, f in enumerate(scene.frames)}
-    depths = read_depths(inputs.scene, [index[f.name] for f in frames])
     keypoints = read_scene_keypoints(inputs.keypoints)
     n_rendered = 0
     if options.rendered_views:
         rendered, observations = read_rendered_views(inputs.render)
-        frames, depths, n_rendered = frames + rendered, depths + [None] * len(rendered), len(rendered)
+        frames, n_rendered = frames + rendered, len(rendered)
         keypoints.by_image.update(observations)
     encoder, weights = load_configured_encoder(model.encoder_width, model.encoder_weights, model.encoder)
     short_side = working_short_side(min(frames[0].camera.width, frames[0].camera.height), options.short_side,
                                     model.max_short_side)
-    buf = fill_buffer(frames, encoder, options, short_side, seed=seed, keypoints=keypoints,
-                      depths=depths if any(d is not None for d in depths) else None,
-                      mapping_images=len(frames) - n_rendered, device=device)
+    # the depth maps are read as the views are drawn: thousands of RGB-D frames do not fit at once
+    with DepthMaps(inputs.scene, [index[f.name] for f in frames[:len(frames) - n_rendered]], n_rendered) as depths:
+        buf = fill_buffer(frames, encoder, options, short_side, seed=seed, keypoints=keypoints,
+                          depths=depths if depths.any() else None,
+                          mapping_images=len(frames) - n_rendered, device=device)
     # Held-out mapping images, unaugmented: training measures its held-out fit on them (train.validate_every).
     heldout = fill_heldout(holdout, encoder, options, short_side, seed=seed, device=device) if holdout else None
     attrs = {"short_side": short_side, "encoder_file": weights.name, "encoder_fingerprint": encoder_fingerprint(encoder)}

@@ -5,6 +5,7 @@ Every stage after `prepare` reads this, never the source format, so importers ru
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -135,3 +136,46 @@ def read_depths(path: Path, indices: list[int]) -> list[np.ndarray | None]:
     with read_h5(path, "prepared scene") as h5:
         depth = h5["depth"] if "depth" in h5 else None
         return [depth[str(i)][()] if depth is not None and str(i) in depth else None for i in indices]
+
+
+class DepthMaps(Sequence):
+    """The depth maps of frames `indices` of scene.h5 `path`, each read when asked for (a capture of
+    thousands of RGB-D frames holds gigabytes of them), then `extra` entries without one. The file
+    is checked once, when this is made, and held open until `close` (or the `with` block ends)."""
+
+    def __init__(self, path: Path, indices: list[int], extra: int = 0) -> None:
+        self.path = Path(path)
+        with read_h5(self.path, "prepared scene") as h5:
+            depth = h5["depth"] if "depth" in h5 else None
+            self._names = [str(i) if depth is not None and str(i) in depth else None for i in indices]
+        self._names += [None] * extra
+        self._h5: h5py.File | None = None
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        name = self._names[i]
+        if name is None:
+            return None
+        if self._h5 is None:
+            self._h5 = h5py.File(self.path, "r")
+        try:
+            return self._h5["depth"][name][()]
+        except (KeyError, OSError, ValueError) as exc:
+            raise SceneError(f"{self.path}: depth map of frame {name} is unreadable ({exc})") from None
+
+    def any(self) -> bool:
+        """Whether any of the frames has a depth map."""
+        return any(name is not None for name in self._names)
+
+    def close(self) -> None:
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+
+    def __enter__(self) -> DepthMaps:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
