@@ -127,15 +127,8 @@ def read_scene_h5(path: Path) -> Scene:
 
 def read_depth(path: Path, index: int) -> np.ndarray | None:
     """Depth of frame `index` of scene.h5 `path` in scene units at working resolution, if the scene has depth."""
-    return read_depths(path, [index])[0]
-
-
-def read_depths(path: Path, indices: list[int]) -> list[np.ndarray | None]:
-    """The depths of frames `indices` (None where a frame has none), the file opened and checked
-    once: opening it checks every dataset's declared size, one per frame."""
-    with read_h5(path, "prepared scene") as h5:
-        depth = h5["depth"] if "depth" in h5 else None
-        return [depth[str(i)][()] if depth is not None and str(i) in depth else None for i in indices]
+    with DepthMaps(path, [index]) as depths:
+        return depths[0]
 
 
 class DepthMaps(Sequence):

@@ -166,7 +166,6 @@ def image_descriptors(obs: LandmarkObservations) -> list[np.ndarray]:
     observations carry them, else its observations; in image order (images without any: empty)."""
     rows = obs.keypoints if obs.keypoints is not None else obs
     out = [np.zeros((0, 128), np.float32) for _ in obs.image_names]
-    starts = np.flatnonzero(np.r_[True, rows.image[1:] != rows.image[:-1]]) if len(rows.image) else np.zeros(0, int)
-    for a, b in zip(starts, np.r_[starts[1:], len(rows.image)]):
-        out[int(rows.image[a])] = unit_descriptors(rows.descriptor[a:b])
+    for image, a, b in rows.image_slices():
+        out[image] = unit_descriptors(rows.descriptor[a:b])
     return out
