@@ -42,7 +42,7 @@ def keypoint_errors(map_path: Path, buffer_path: Path) -> dict[str, float]:
     depth = float(reloc.metadata.get("median_depth", 1.0))
     err3d = np.linalg.norm(pred - X, axis=1) / depth
     v = buf.kp_view
-    cam = np.einsum("nij,nj->ni", buf.view_R[v], pred) + buf.view_t[v]
+    cam = np.einsum("nij,nj->ni", buf.view_R_world_to_cam[v], pred) + buf.view_t_world_to_cam[v]
     uv = np.einsum("nij,nj->ni", buf.view_K[v], cam)
     front = cam[:, 2] > 1e-6
     reproj = np.full(len(pred), np.inf)

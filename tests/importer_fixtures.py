@@ -36,7 +36,7 @@ class GtCam:
         return -self.R.T @ self.t
 
     @property
-    def R_c2w(self) -> np.ndarray:
+    def R_cam_to_world(self) -> np.ndarray:
         return self.R.T
 
 
@@ -88,7 +88,7 @@ def write_pose_txt(path: Path, T: np.ndarray) -> None:
     path.write_text("\n".join(" ".join(f"{v:.17g}" for v in row) for row in T) + "\n")
 
 
-def c2w_matrix(gt: GtCam) -> np.ndarray:
+def cam_to_world_matrix(gt: GtCam) -> np.ndarray:
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = gt.R_c2w, gt.center
+    T[:3, :3], T[:3, 3] = gt.R_cam_to_world, gt.center
     return T

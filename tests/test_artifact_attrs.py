@@ -72,7 +72,8 @@ def _buffer_h5(d: Path) -> Path:
     buf = TrainingBuffer(
         features=np.zeros((4, 16), np.float16), pixels=np.full((4, 2), 4.5, np.float32),
         view_index=np.array([0, 0, 1, 1], np.int32), view_image=np.array([0, 1], np.int32),
-        view_R=np.stack([ROT, np.eye(3)]).astype(np.float32), view_t=np.zeros((2, 3), np.float32),
+        view_R_world_to_cam=np.stack([ROT, np.eye(3)]).astype(np.float32),
+        view_t_world_to_cam=np.zeros((2, 3), np.float32),
         view_K=np.stack([CAM.K, CAM.K]).astype(np.float32), image_names=["train/a.png", "render/0000.png"],
         kp_id=np.array([0, 1, 1], np.int32), kp_features=np.zeros((3, 16), np.float16),
         kp_pixels=np.full((3, 2), 2.5, np.float32), kp_view=np.array([0, 0, 1], np.int32),

@@ -50,9 +50,9 @@ def test_projection_consistency_random_draws(fx: float, fy: float, seed: int) ->
     K, R, t = _camera(fx, fy, seed)
     X = _points(K, R, t, seed)
     view = augment(_image(), K, R, t, np.random.default_rng(seed))
-    np.testing.assert_allclose(view.R_w2c @ view.R_w2c.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(view.R_world_to_cam @ view.R_world_to_cam.T, np.eye(3), atol=1e-12)
     expected = _apply(view.pixel_transform, _project(K, R, t, X))
-    np.testing.assert_allclose(_project(view.K, view.R_w2c, view.t_w2c, X), expected, atol=1e-6)
+    np.testing.assert_allclose(_project(view.K, view.R_world_to_cam, view.t_world_to_cam, X), expected, atol=1e-6)
 
 
 @pytest.mark.parametrize("angle", [-12.0, 12.0])
@@ -62,7 +62,7 @@ def test_projection_consistency_both_signs(angle: float, fx: float, fy: float) -
     X = _points(K, R, t, 7)
     view = warp_view(_image(), K, R, t, scale=1.1, angle_deg=angle)
     expected = _apply(view.pixel_transform, _project(K, R, t, X))
-    np.testing.assert_allclose(_project(view.K, view.R_w2c, view.t_w2c, X), expected, atol=1e-6)
+    np.testing.assert_allclose(_project(view.K, view.R_world_to_cam, view.t_world_to_cam, X), expected, atol=1e-6)
     np.testing.assert_allclose(view.K, np.diag([1.1, 1.1, 1.0]) @ K, rtol=1e-12)
 
 
@@ -98,7 +98,7 @@ def test_scene_point_looks_the_same_before_and_after(seed: int) -> None:
         return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR).ravel()
 
     uv0 = _project(K, R, t, X)
-    uv1 = _project(view.K, view.R_w2c, view.t_w2c, X)
+    uv1 = _project(view.K, view.R_world_to_cam, view.t_world_to_cam, X)
     h, w = view.image.shape
     keep = (
         (uv0 > 8).all(1) & (uv0[:, 0] < W - 8) & (uv0[:, 1] < H - 8)
@@ -119,7 +119,7 @@ def test_rotation_sign_matches_opencv() -> None:
         shift = np.array([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1.0]])
         A_ocv = np.linalg.inv(shift) @ view.pixel_transform @ shift
         np.testing.assert_allclose(A_ocv[:2], M, atol=1e-9)
-        np.testing.assert_allclose(view.R_w2c, roll_rotation(angle) @ R, atol=1e-12)
+        np.testing.assert_allclose(view.R_world_to_cam, roll_rotation(angle) @ R, atol=1e-12)
     # Positive angle: a point right of the principal point moves up on screen (y decreases).
     view = warp_view(_image(), K, R, t, angle_deg=10.0)
     moved = _apply(view.pixel_transform, np.array([[K[0, 2] + 100.0, K[1, 2]]]))
@@ -131,7 +131,7 @@ def test_scale_changes_size_and_intrinsics() -> None:
     view = warp_view(_image(), K, R, t, scale=1.5)
     assert view.image.shape == (720, 960)
     np.testing.assert_allclose(view.K, np.diag([1.5, 1.5, 1.0]) @ K)
-    np.testing.assert_array_equal(view.R_w2c, R)
+    np.testing.assert_array_equal(view.R_world_to_cam, R)
     # Rounded sizes scale each axis by its own factor.
     view = warp_view(_image(481, 641), K, R, t, scale=0.7)
     assert view.image.shape == (336, 448)

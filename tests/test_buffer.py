@@ -57,7 +57,7 @@ def test_buffer_size_views_and_determinism(scene, encoder, tmp_path):
     assert read_buffer_image_names(tmp_path / "b.h5") == a.image_names == [f.name for f in frames]
     c = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     np.testing.assert_array_equal(a.features, c.features)
-    np.testing.assert_array_equal(a.view_R, c.view_R)
+    np.testing.assert_array_equal(a.view_R_world_to_cam, c.view_R_world_to_cam)
 
 
 def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encoder):
@@ -67,8 +67,8 @@ def test_cells_lie_inside_the_source_view_seen_from_the_same_centre(scene, encod
     buf = fill_buffer(frames, encoder, OPTS, SHORT_SIDE, seed=SEED)
     for v in range(len(buf.view_image)):
         frame = frames[buf.view_image[v]]
-        K, R, t = (buf.view_K[v].astype(np.float64), buf.view_R[v].astype(np.float64),
-                   buf.view_t[v].astype(np.float64))
+        K, R, t = (buf.view_K[v].astype(np.float64), buf.view_R_world_to_cam[v].astype(np.float64),
+                   buf.view_t_world_to_cam[v].astype(np.float64))
         np.testing.assert_allclose(-R.T @ t, frame.center, atol=1e-4)
         sel = buf.view_index == v
         rays = np.linalg.inv(K) @ np.c_[buf.pixels[sel], np.ones(sel.sum())].T
@@ -120,7 +120,8 @@ def test_the_buffer_is_the_same_for_any_thread_count(scene, encoder, threads):
     finally:
         torch.set_num_threads(before)
     assert len(buf.view_image) == 8
-    for name in ("features", "pixels", "view_index", "view_image", "view_R", "view_t", "view_K"):
+    for name in ("features", "pixels", "view_index", "view_image", "view_R_world_to_cam", "view_t_world_to_cam",
+                 "view_K"):
         np.testing.assert_array_equal(getattr(buf, name), getattr(reference, name), err_msg=name)
 
 
@@ -168,7 +169,7 @@ def test_keypoint_tuples_project_exactly_and_depth_decides_visibility(scene, enc
     assert buf.has_keypoints and np.all(np.diff(buf.kp_id) >= 0)
     X = kp.xyz[buf.kp_id]
     v = buf.kp_view
-    p = np.einsum("nij,nj->ni", buf.view_R[v], X) + buf.view_t[v]
+    p = np.einsum("nij,nj->ni", buf.view_R_world_to_cam[v], X) + buf.view_t_world_to_cam[v]
     proj = np.einsum("nij,nj->ni", buf.view_K[v], p)
     err = np.linalg.norm(proj[:, :2] / proj[:, 2:] - buf.kp_pixels, axis=1)
     assert err.max() < 0.05, err.max()
@@ -211,7 +212,7 @@ def test_heldout_cells_are_one_unaugmented_view_per_withheld_image(scene, encode
     assert sorted(buf.view_image.tolist()) == list(range(len(held)))
     assert len(buf.features) == len(held) * OPTS.samples_per_image
     for v, i in enumerate(buf.view_image):  # the source pose, no roll; intrinsics only rescaled
-        np.testing.assert_allclose(buf.view_R[v], held[i].R, atol=1e-6)
+        np.testing.assert_allclose(buf.view_R_world_to_cam[v], held[i].R, atol=1e-6)
         scale = SHORT_SIDE / min(held[i].camera.width, held[i].camera.height)
         np.testing.assert_allclose(buf.view_K[v][0, 0], held[i].camera.K[0, 0] * scale, rtol=1e-3)
 

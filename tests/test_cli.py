@@ -289,9 +289,9 @@ def test_exact_scene_coordinates_export_the_true_pose(files: dict[str, Path], tm
     image = next(iter(pycolmap.Reconstruction(str(out)).images.values()))
     pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
     # transforms.json (one frame cannot be split into train and test for the importer): invert the math.
-    c2w = np.array(json.loads((out / "transforms.json").read_text())["frames"][0]["transform_matrix"])
-    R_gl = (c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])).T
-    for R_est, t_est in [(R, t), (pose.rotation.matrix(), pose.translation), (R_gl, -R_gl @ c2w[:3, 3])]:
+    cam_to_world = np.array(json.loads((out / "transforms.json").read_text())["frames"][0]["transform_matrix"])
+    R_gl = (cam_to_world[:3, :3] @ np.diag([1.0, -1.0, -1.0])).T
+    for R_est, t_est in [(R, t), (pose.rotation.matrix(), pose.translation), (R_gl, -R_gl @ cam_to_world[:3, 3])]:
         assert rotation_error_deg(R_est, R_true) < 0.01
         np.testing.assert_allclose(t_est, t_true, atol=1e-3)
 

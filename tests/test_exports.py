@@ -145,11 +145,11 @@ def test_nerfstudio_round_trips_through_the_importer(exported: tuple[Path, list[
     data = json.loads((out / "transforms.json").read_text())
     assert data["camera_model"] == "OPENCV" and len(data["frames"]) == len(items)
     for frame, item in zip(data["frames"], items):
-        c2w = np.array(frame["transform_matrix"])
+        cam_to_world = np.array(frame["transform_matrix"])
         # OpenGL axes: the camera looks down its -z, its y is up; the centre is -R^T t.
-        np.testing.assert_allclose(-c2w[:3, 2], item.R[2], atol=1e-12)
-        np.testing.assert_allclose(-c2w[:3, 1], item.R[1], atol=1e-12)
-        np.testing.assert_allclose(c2w[:3, 3], -item.R.T @ item.t, atol=1e-12)
+        np.testing.assert_allclose(-cam_to_world[:3, 2], item.R[2], atol=1e-12)
+        np.testing.assert_allclose(-cam_to_world[:3, 1], item.R[1], atol=1e-12)
+        np.testing.assert_allclose(cam_to_world[:3, 3], -item.R.T @ item.t, atol=1e-12)
         assert (frame["w"], frame["h"]) == (W, H) and (out / frame["file_path"]).resolve() == item.path.resolve()
     scene = load_scene("transforms", out, "queries", split_rule="every_nth", split_n=2)
     frames = {Path(f.image_path).name: f for f in scene.frames}

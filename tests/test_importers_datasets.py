@@ -21,7 +21,7 @@ from importer_fixtures import (  # noqa: F401
     X_WORLD,
     GtCam,
     assert_reprojects,
-    c2w_matrix,
+    cam_to_world_matrix,
     make_gt,
     project,
     write_image,
@@ -52,7 +52,7 @@ def ace_scene(root: Path) -> dict[str, GtCam]:
             gt = make_gt(100 + len(gts), cam)
             gts[f"{split}/rgb/{stem}.color.png"] = gt
             write_image(root / split / "rgb" / f"{stem}.color.png", W, H)
-            write_pose_txt(root / split / "poses" / f"{stem}.pose.txt", c2w_matrix(gt))
+            write_pose_txt(root / split / "poses" / f"{stem}.pose.txt", cam_to_world_matrix(gt))
             (root / split / "calibration").mkdir(parents=True, exist_ok=True)
             (root / split / "calibration" / f"{stem}.calibration.txt").write_text(calib)
             (root / split / "depth").mkdir(parents=True, exist_ok=True)
@@ -109,7 +109,7 @@ def seven_scenes(root: Path) -> dict[str, GtCam]:
             gt = make_gt(200 + len(gts), SEVEN_CAM)
             gts[f"{name}.color.png"] = gt
             write_image(root / f"{name}.color.png", 8, 6)
-            write_pose_txt(root / f"{name}.pose.txt", c2w_matrix(gt))
+            write_pose_txt(root / f"{name}.pose.txt", cam_to_world_matrix(gt))
             Image.fromarray(np.zeros((6, 8), dtype=np.uint16)).save(root / f"{name}.depth.png")
     (root / "TrainSplit.txt").write_text("sequence1\n")
     (root / "TestSplit.txt").write_text("sequence2\n")

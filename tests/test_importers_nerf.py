@@ -21,7 +21,7 @@ from importer_fixtures import (  # noqa: F401
     X_WORLD,
     GtCam,
     assert_reprojects,
-    c2w_matrix,
+    cam_to_world_matrix,
     make_gt,
     project,
     write_image,
@@ -50,7 +50,7 @@ def llff_scene(root: Path, stored_hw: tuple[int, int] = (60, 80), disk_wh: tuple
         cam = Camera("PINHOLE", W, H, (f_stored * W / w, f_stored * H / h, W / 2, H / 2))
         gt = make_gt(10 + i, cam)
         gts[f"images/{name}"] = gt
-        Rc = gt.R_c2w  # columns right, down, forward
+        Rc = gt.R_cam_to_world  # columns right, down, forward
         R_llff = np.stack([Rc[:, 1], Rc[:, 0], -Rc[:, 2]], axis=1)  # down, right, backwards
         m = np.concatenate([R_llff, gt.center[:, None], np.array([[h], [w], [f_stored]])], axis=1)
         rows.append(np.concatenate([m.reshape(-1), [0.5, 20.0]]))
@@ -124,7 +124,7 @@ def test_llff_images_of_different_sizes(tmp_path: Path) -> None:
 # ---------------------------------------------------------------- transforms.json
 
 def transforms_frame(gt: GtCam, file_path: str) -> dict:
-    T = c2w_matrix(gt)
+    T = cam_to_world_matrix(gt)
     T[:3, :3] = T[:3, :3] @ GL_FROM_CV  # OpenCV -> OpenGL camera axes
     return {"file_path": file_path, "transform_matrix": T.tolist()}
 

@@ -109,7 +109,7 @@ def test_a_bf16_training_step_agrees_with_fp32_within_bf16_rounding():
     buf, _, _ = synthetic_buffer(n_points=200, n_views=6)
     feats = torch.from_numpy(buf.features).float()
     v = torch.from_numpy(buf.view_index.astype(np.int64))
-    R, t = torch.from_numpy(buf.view_R)[v], torch.from_numpy(buf.view_t)[v]
+    R, t = torch.from_numpy(buf.view_R_world_to_cam)[v], torch.from_numpy(buf.view_t_world_to_cam)[v]
     K = torch.from_numpy(buf.view_K)[v]
     uv = torch.from_numpy(buf.pixels)
     results = {}

@@ -36,7 +36,7 @@ def _batch(n: int, seed: int = 0, depth: torch.Tensor | None = None) -> dict[str
     uv1 = torch.cat([pixels, torch.ones(n, 1, dtype=torch.float64)], dim=1)
     p = depth.unsqueeze(1) * torch.einsum("nij,nj->ni", K_inv, uv1)
     X = torch.einsum("nji,nj->ni", R, p - t)
-    return {"pred_xyz_world": X, "pixels": pixels, "R_w2c": R, "t_w2c": t, "K": K, "K_inv": K_inv}
+    return {"pred_xyz_world": X, "pixels": pixels, "R_world_to_cam": R, "t_world_to_cam": t, "K": K, "K_inv": K_inv}
 
 
 def _to(b: dict[str, torch.Tensor], dtype: torch.dtype) -> dict[str, torch.Tensor]:
@@ -71,7 +71,7 @@ def test_point_behind_camera_pulls_to_depth_ten_on_ray() -> None:
     b = _batch(5, depth=torch.tensor([-2.0, 3.0, -0.5, 0.05, 2000.0], dtype=torch.float64))
     loss, stats = reprojection_loss(**b, threshold=10.0, **ACE)
     # Camera coordinates of the predictions and the depth-10 points on the pixels' rays.
-    p = torch.einsum("nij,nj->ni", b["R_w2c"], b["pred_xyz_world"]) + b["t_w2c"]
+    p = torch.einsum("nij,nj->ni", b["R_world_to_cam"], b["pred_xyz_world"]) + b["t_world_to_cam"]
     uv1 = torch.cat([b["pixels"], torch.ones(5, 1, dtype=torch.float64)], dim=1)
     target = 10 * torch.einsum("nij,nj->ni", b["K_inv"], uv1)
     expected = (p - target).abs().sum(dim=1)

@@ -66,7 +66,8 @@ def synthetic_buffer(n_points: int = 300, n_views: int = 12, dim: int = 32, seed
     f = np.concatenate(fidx)
     buf = TrainingBuffer(
         features=feats[f], pixels=np.concatenate(pix).astype(np.float32), view_index=np.concatenate(vidx).astype(np.int32),
-        view_image=np.arange(n_views, dtype=np.int32), view_R=np.array(Rs, np.float32), view_t=np.array(ts, np.float32),
+        view_image=np.arange(n_views, dtype=np.int32), view_R_world_to_cam=np.array(Rs, np.float32),
+        view_t_world_to_cam=np.array(ts, np.float32),
         view_K=np.repeat(K[None], n_views, 0).astype(np.float32), image_names=[f"v{v}" for v in range(n_views)])
     return buf, pts, feats
 

@@ -161,10 +161,10 @@ def test_prepare_undistorts_every_format(tmp_path: Path, fmt: str, model: str) -
 def test_transforms_camera_errors(tmp_path: Path) -> None:
     for name in ("a.png", "b.png"):
         cv2.imwrite(str(tmp_path / name), texture())
-    c2w = np.eye(4).tolist()
+    cam_to_world = np.eye(4).tolist()
 
     def write(**intr: object) -> None:
-        frames = [{"file_path": name, "transform_matrix": c2w} for name in ("a.png", "b.png")]
+        frames = [{"file_path": name, "transform_matrix": cam_to_world} for name in ("a.png", "b.png")]
         (tmp_path / "transforms.json").write_text(json.dumps({"w": 160, "h": 120, "fl_x": 150, **intr, "frames": frames}))
     write(camera_model="EQUIRECTANGULAR")
     with pytest.raises(SceneError, match="transforms.json frame 0 .*camera model 'EQUIRECTANGULAR' is not supported"):

@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class BaselinePose:
-    """One query's result for one RANSAC seed."""
+    """One query's result for one RANSAC seed; `R`, `t` are world-to-camera."""
 
     R: np.ndarray | None  # world-to-camera, None when not localized
     t: np.ndarray | None

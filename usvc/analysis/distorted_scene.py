@@ -79,11 +79,11 @@ def distorted_camera(pinhole: Camera, model: str, coefficients: tuple[float, ...
 def _write_transforms(out: Path, scene: Scene, cameras: list[Camera], names: list[str]) -> None:
     frames = []
     for f, cam, name in zip(scene.frames, cameras, names):
-        c2w = np.eye(4)
-        c2w[:3, :3] = f.R.T @ _GL_FROM_CV
-        c2w[:3, 3] = f.center
+        cam_to_world = np.eye(4)
+        cam_to_world[:3, :3] = f.R.T @ _GL_FROM_CV
+        cam_to_world[:3, 3] = f.center
         p = cam.params
-        entry = {"file_path": f"images/{name}", "transform_matrix": c2w.tolist(), "camera_model": cam.model,
+        entry = {"file_path": f"images/{name}", "transform_matrix": cam_to_world.tolist(), "camera_model": cam.model,
                  "fl_x": p[0], "fl_y": p[1], "cx": p[2], "cy": p[3], "w": cam.width, "h": cam.height}
         keys = ("k1", "k2", "p1", "p2") if cam.model == "OPENCV" else ("k1", "k2", "k3", "k4")
         entry.update(dict(zip(keys, p[4:8])))

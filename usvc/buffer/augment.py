@@ -43,8 +43,8 @@ class AugmentedView:
     image: np.ndarray
     mask: np.ndarray
     K: np.ndarray
-    R_w2c: np.ndarray
-    t_w2c: np.ndarray
+    R_world_to_cam: np.ndarray
+    t_world_to_cam: np.ndarray
     scale: float
     angle_deg: float
     brightness: float
@@ -87,8 +87,8 @@ def _photometric(image: np.ndarray, brightness: float, contrast: float) -> np.nd
 def warp_view(
     image: np.ndarray,
     K: np.ndarray,
-    R_w2c: np.ndarray,
-    t_w2c: np.ndarray,
+    R_world_to_cam: np.ndarray,
+    t_world_to_cam: np.ndarray,
     scale: float = 1.0,
     angle_deg: float = 0.0,
     brightness: float = 1.0,
@@ -126,14 +126,14 @@ def warp_view(
         ones = np.ones((h2, w2), dtype=np.uint8)
         mask = cv2.warpAffine(ones, M, (w2, h2), flags=cv2.INTER_NEAREST, **border).astype(bool)
 
-    R = np.asarray(R_w2c, dtype=np.float64)
-    t = np.asarray(t_w2c, dtype=np.float64).reshape(3)
+    R = np.asarray(R_world_to_cam, dtype=np.float64)
+    t = np.asarray(t_world_to_cam, dtype=np.float64).reshape(3)
     return AugmentedView(
         image=out.astype(np.float32, copy=False),
         mask=mask,
         K=K2,
-        R_w2c=Rz @ R,
-        t_w2c=Rz @ t,
+        R_world_to_cam=Rz @ R,
+        t_world_to_cam=Rz @ t,
         scale=float(scale),
         angle_deg=float(angle_deg),
         brightness=float(brightness),
@@ -145,8 +145,8 @@ def warp_view(
 def augment(
     image_gray_float: np.ndarray,
     K: np.ndarray,
-    R_w2c: np.ndarray,
-    t_w2c: np.ndarray,
+    R_world_to_cam: np.ndarray,
+    t_world_to_cam: np.ndarray,
     rng: np.random.Generator,
     scale_range: tuple[float, float] = (1 / 1.5, 1.5),
     short_side: int = 480,
@@ -162,4 +162,4 @@ def augment(
     angle = float(rng.uniform(-max_rotation_deg, max_rotation_deg))
     b = float(rng.uniform(*brightness))
     c = float(rng.uniform(*contrast))
-    return warp_view(image_gray_float, K, R_w2c, t_w2c, s, angle, b, c, short_side)
+    return warp_view(image_gray_float, K, R_world_to_cam, t_world_to_cam, s, angle, b, c, short_side)

@@ -57,8 +57,8 @@ class TrainingBuffer:
     pixels: np.ndarray  # (M, 2) float32, COLMAP coordinates in the augmented view
     view_index: np.ndarray  # (M,) int32 into the per-view arrays
     view_image: np.ndarray  # (V,) int32 index of the source mapping image
-    view_R: np.ndarray  # (V, 3, 3) world-to-camera of the augmented view
-    view_t: np.ndarray  # (V, 3)
+    view_R_world_to_cam: np.ndarray  # (V, 3, 3) world-to-camera of the augmented view
+    view_t_world_to_cam: np.ndarray  # (V, 3)
     view_K: np.ndarray  # (V, 3, 3)
     image_names: list[str]
     # Keypoint tuples (k, d_k, view -> (R_i, t_i, K_i), u_obs), sorted by keypoint id so that the
@@ -84,7 +84,7 @@ def write_buffer(path: Path, buf: TrainingBuffer, **attrs: int | float | str) ->
         h5["pixels"], h5["view_index"] = buf.pixels, buf.view_index
         views = h5.create_group("views")
         views["image"], views["R_world_to_cam"], views["t_world_to_cam"], views["K"] = (
-            buf.view_image, buf.view_R, buf.view_t, buf.view_K)
+            buf.view_image, buf.view_R_world_to_cam, buf.view_t_world_to_cam, buf.view_K)
         h5.create_dataset("image_names", data=np.array(buf.image_names, dtype=object), dtype=h5py.string_dtype())
         if buf.has_keypoints:
             kp = h5.create_group("keypoints")
@@ -128,8 +128,8 @@ def read_buffer(path: Path) -> TrainingBuffer:
     with read_h5(path, "training buffer") as h5:  # names a missing or damaged file
         buf = TrainingBuffer(
             features=h5["features"][()], pixels=h5["pixels"][()], view_index=h5["view_index"][()],
-            view_image=h5["views/image"][()], view_R=h5["views/R_world_to_cam"][()],
-            view_t=h5["views/t_world_to_cam"][()], view_K=h5["views/K"][()],
+            view_image=h5["views/image"][()], view_R_world_to_cam=h5["views/R_world_to_cam"][()],
+            view_t_world_to_cam=h5["views/t_world_to_cam"][()], view_K=h5["views/K"][()],
             image_names=[n.decode() if isinstance(n, bytes) else n for n in h5["image_names"][()]],
         )
         if "keypoints" in h5:

@@ -228,8 +228,8 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
                 kp_parts["view"].append(np.full(len(ids), len(views["image"]), dtype=np.int32))
                 kp_parts["from_depth"].append(from_depth)
             views["image"].append(plan.frame)
-            views["R"].append(plan.view.R_w2c)
-            views["t"].append(plan.view.t_w2c)
+            views["R"].append(plan.view.R_world_to_cam)
+            views["t"].append(plan.view.t_world_to_cam)
             views["K"].append(plan.view.K)
             count += take
             bar.update(take)
@@ -237,8 +237,9 @@ def fill_buffer(frames: list[Frame], encoder: Encoder, opts: BufferOptions, shor
              len(views["image"]), n_views, precision)
     buf = TrainingBuffer(
         features=np.concatenate(feats), pixels=np.concatenate(pixels), view_index=np.concatenate(view_idx),
-        view_image=np.asarray(views["image"], dtype=np.int32), view_R=np.stack(views["R"]).astype(np.float32),
-        view_t=np.stack(views["t"]).astype(np.float32), view_K=np.stack(views["K"]).astype(np.float32),
+        view_image=np.asarray(views["image"], dtype=np.int32),
+        view_R_world_to_cam=np.stack(views["R"]).astype(np.float32),
+        view_t_world_to_cam=np.stack(views["t"]).astype(np.float32), view_K=np.stack(views["K"]).astype(np.float32),
         image_names=[f.name for f in frames],
     )
     if keypoints is not None:

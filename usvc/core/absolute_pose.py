@@ -31,7 +31,10 @@ def absolute_pose_options(max_error_px: float, seed: int) -> pycolmap.AbsolutePo
 
 @dataclass
 class FocalPose:
-    """A focal length estimated with the pose (P4Pf): the camera, the pose and its inliers."""
+    """A focal length estimated with the pose (P4Pf): the camera, the pose and its inliers.
+
+    `R`, `t` are world-to-camera (pycolmap's cam_from_world: x_cam = R x_world + t).
+    """
 
     camera: Camera
     R: np.ndarray

@@ -63,13 +63,13 @@ def render_scene(params: RoomParams) -> CorpusScene:
     grays, xyzs, centres = [], [], []
     mapping = [seq for seq in make_sequences(params, layout) if seq.split == "train"]
     for seq_i, seq in enumerate(mapping):
-        for k, c2w in enumerate(seq.cam_to_world):
-            rgb, depth = renderer.render(c2w, noise_seed=params.seed * 100_000 + seq_i * 1000 + k)
+        for k, cam_to_world in enumerate(seq.cam_to_world):
+            rgb, depth = renderer.render(cam_to_world, noise_seed=params.seed * 100_000 + seq_i * 1000 + k)
             cam = rays * depth[None]
-            world = np.einsum("ij,jhw->hwi", c2w[:3, :3], cam) + c2w[:3, 3]
+            world = np.einsum("ij,jhw->hwi", cam_to_world[:3, :3], cam) + cam_to_world[:3, 3]
             grays.append(luma01(rgb, rgb=True))
             xyzs.append(world.astype(np.float16))
-            centres.append(c2w[:3, 3])
+            centres.append(cam_to_world[:3, 3])
     return CorpusScene(seed=params.seed, gray=np.stack(grays), xyz=np.stack(xyzs),
                        center=np.mean(centres, axis=0))
 

@@ -37,7 +37,10 @@ _CV_TO_GL = np.diag([1.0, -1.0, -1.0])  # flips the camera's y and z axes (eithe
 
 @dataclass(frozen=True)
 class Posed:
-    """A localized photo: its name as reported, its file, its camera and its pose."""
+    """A localized photo: its name as reported, its file, its camera and its pose.
+
+    `R`, `t` are world-to-camera (x_cam = R x_world + t, OpenCV axes).
+    """
 
     name: str
     path: Path
@@ -166,15 +169,15 @@ def transforms_json_text(items: Sequence[Posed], folder: Path) -> str:
     frames = []
     for item in items:
         R = np.asarray(item.R, dtype=np.float64)
-        c2w = np.eye(4)
-        c2w[:3, :3] = R.T @ _CV_TO_GL
-        c2w[:3, 3] = camera_centers(R, item.t)
+        cam_to_world = np.eye(4)
+        cam_to_world[:3, :3] = R.T @ _CV_TO_GL
+        cam_to_world[:3, 3] = camera_centers(R, item.t)
         try:
             file_path = Path(os.path.relpath(Path(item.path).resolve(), folder.resolve())).as_posix()
         except ValueError:  # Windows: another drive than the output folder
             file_path = Path(item.path).resolve().as_posix()
         frames.append({"file_path": file_path,
-                       "transform_matrix": c2w.tolist(), **nerfstudio_intrinsics(item.camera, item.name)})
+                       "transform_matrix": cam_to_world.tolist(), **nerfstudio_intrinsics(item.camera, item.name)})
     models = {f.get("camera_model", "OPENCV") for f in frames}
     if len(models) > 1:
         raise UsvcError(f"transforms.json holds one lens type, but the photos mix {sorted(models)}")

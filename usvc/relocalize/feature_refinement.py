@@ -103,7 +103,8 @@ class FeatureResult:
     """What refinement by features found. `path` is "guided" (from the learned pose), "global"
     (matching against every landmark's descriptor, then guided passes), "verified" (SIFT + PnP's
     evidence: matches to each mapping image, verified per pair, lifted through the tracks; then
-    guided passes) or "" (no pose)."""
+    guided passes) or "" (no pose). `R`, `t` are world-to-camera (x_cam = R x_world + t), None
+    when no pose was found."""
 
     R: np.ndarray | None
     t: np.ndarray | None

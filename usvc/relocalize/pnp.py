@@ -37,7 +37,10 @@ _REFINE_ROUNDS = 10
 
 @dataclass
 class PnPResult:
-    """A solved (or failed) pose; on failure R and t are NaN so they cannot be used by mistake."""
+    """A solved (or failed) pose; on failure R and t are NaN so they cannot be used by mistake.
+
+    `R`, `t` are world-to-camera (x_cam = R x_world + t, OpenCV axes).
+    """
 
     success: bool
     R: np.ndarray

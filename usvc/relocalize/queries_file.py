@@ -88,7 +88,10 @@ def read_query_stats(path: Path | str) -> dict[str, QueryStats]:
 
 @dataclass(frozen=True)
 class RefinementRecords:
-    """Per-query refinement records of `queries.h5`: the dense pose before refinement and what it did."""
+    """Per-query refinement records of `queries.h5`: the dense pose before refinement and what it did.
+
+    `initial_R`, `initial_t` are world-to-camera (x_cam = R x_world + t).
+    """
 
     names: list[str]
     success: np.ndarray  # (Q,) bool

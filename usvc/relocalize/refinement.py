@@ -44,7 +44,10 @@ class RefineOptions:
 
 @dataclass
 class RefineResult:
-    """The pose refinement returns, the dense pose it started from, and what happened on the way."""
+    """The pose refinement returns, the dense pose it started from, and what happened on the way.
+
+    `R`, `t` and `initial_R`, `initial_t` are world-to-camera (x_cam = R x_world + t).
+    """
 
     R: np.ndarray  # the returned world-to-camera pose: refined if `kept`, else the initial one
     t: np.ndarray

@@ -17,7 +17,7 @@ from usvc.core.scene_file import IMAGE_DIR
 
 @dataclass
 class NovelView:
-    """One rendered view, as render.h5 and its PNG store it."""
+    """One rendered view, as render.h5 and its PNG store it; `R`, `t` are world-to-camera."""
 
     source: str  # the mapping image it was perturbed from
     R: np.ndarray  # (3, 3) world-to-camera

@@ -26,6 +26,8 @@ from usvc.core.h5_file import Field, read_h5, write_h5
 
 @dataclass
 class Tracks:
+    """The registered images and their tracks; `R`, `t` are world-to-camera (x_cam = R x_world + t)."""
+
     image_names: list[str]
     R: np.ndarray  # (M,3,3) world-to-camera of each image
     t: np.ndarray  # (M,3)

@@ -53,8 +53,8 @@ def lower_median(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 def reprojection_loss(
     pred_xyz_world: torch.Tensor,
     pixels: torch.Tensor,
-    R_w2c: torch.Tensor,
-    t_w2c: torch.Tensor,
+    R_world_to_cam: torch.Tensor,
+    t_world_to_cam: torch.Tensor,
     K: torch.Tensor,
     K_inv: torch.Tensor,
     threshold: float | torch.Tensor,
@@ -66,8 +66,8 @@ def reprojection_loss(
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean loss over N samples and detached statistics.
 
-    Shapes: pred_xyz_world (N, 3), pixels (N, 2), R_w2c (N, 3, 3), t_w2c (N, 3), K and K_inv
-    (N, 3, 3). ``threshold`` is tau in pixels (see ``schedule.circle_threshold``). The depth bounds,
+    Shapes: pred_xyz_world (N, 3), pixels (N, 2), R_world_to_cam (N, 3, 3), t_world_to_cam (N, 3),
+    K and K_inv (N, 3, 3). ``threshold`` is tau in pixels (see ``schedule.circle_threshold``). The depth bounds,
     ``max_reproj`` and ``invalid_depth`` have no defaults: the trainer derives them from
     `TrainOptions` (relative to the scene's median depth), so a value lives in one place.
 
@@ -76,10 +76,10 @@ def reprojection_loss(
     (NaN when none is valid).
     """
     n = pred_xyz_world.shape[0]
-    if pixels.shape != (n, 2) or R_w2c.shape != (n, 3, 3) or t_w2c.shape != (n, 3):
+    if pixels.shape != (n, 2) or R_world_to_cam.shape != (n, 3, 3) or t_world_to_cam.shape != (n, 3):
         raise ValueError(
             f"shape mismatch: pred {tuple(pred_xyz_world.shape)}, pixels {tuple(pixels.shape)}, "
-            f"R {tuple(R_w2c.shape)}, t {tuple(t_w2c.shape)}"
+            f"R {tuple(R_world_to_cam.shape)}, t {tuple(t_world_to_cam.shape)}"
         )
     if K.shape != (n, 3, 3) or K_inv.shape != (n, 3, 3):
         raise ValueError(
@@ -90,8 +90,8 @@ def reprojection_loss(
     with torch.autocast(device_type=pred_xyz_world.device.type, enabled=False):
         X = pred_xyz_world.to(dtype)
         uv = pixels.to(dtype)
-        R = R_w2c.to(dtype)
-        t = t_w2c.to(dtype)
+        R = R_world_to_cam.to(dtype)
+        t = t_world_to_cam.to(dtype)
         Kf = K.to(dtype)
         Kinv = K_inv.to(dtype)
         tau = threshold.to(dtype) if isinstance(threshold, torch.Tensor) else threshold

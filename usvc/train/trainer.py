@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 def mapping_center(buf: TrainingBuffer) -> np.ndarray:
     """Mean camera centre of the mapping images (ACE's scene centre); rolls keep the centre."""
-    centres = camera_centers(buf.view_R, buf.view_t)
+    centres = camera_centers(buf.view_R_world_to_cam, buf.view_t_world_to_cam)
     _, first = np.unique(buf.view_image, return_index=True)
     return centres[first].mean(axis=0)
 
@@ -50,7 +50,7 @@ def heldout_fit(head: Head, buf: TrainingBuffer, precision: str, depth_min: floa
     median L1 reprojection error (px) of the cells predicted in front of the camera, and the share
     of all cells within 10 px."""
     errors = []
-    Rv, tv = torch.from_numpy(buf.view_R).float(), torch.from_numpy(buf.view_t).float()
+    Rv, tv = torch.from_numpy(buf.view_R_world_to_cam).float(), torch.from_numpy(buf.view_t_world_to_cam).float()
     Kv = torch.from_numpy(buf.view_K).float()
     for lo in range(0, len(buf.features), chunk):
         x = torch.from_numpy(buf.features[lo:lo + chunk]).to(device=device, dtype=torch.float32)
@@ -261,8 +261,8 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     pixels = torch.from_numpy(buf.pixels).float().to(device)
     view = torch.from_numpy(buf.view_index.astype(np.int64)).to(device)
     Kv_host = torch.from_numpy(buf.view_K).float()
-    Rv = torch.from_numpy(buf.view_R).float().to(device)
-    tv = torch.from_numpy(buf.view_t).float().to(device)
+    Rv = torch.from_numpy(buf.view_R_world_to_cam).float().to(device)
+    tv = torch.from_numpy(buf.view_t_world_to_cam).float().to(device)
     Kv, Kinv = Kv_host.to(device), torch.linalg.inv(Kv_host).to(device)
     if sampler is not None:
         kp_feats = torch.from_numpy(buf.kp_features).to(device)

@@ -18,12 +18,12 @@ from usvc.core.errors import SceneError
 from usvc.core.scene import Camera, Frame, Scene, every_nth_split
 from usvc.prepare.importers.common import (
     as_matrix,
-    c2w_to_w2c,
     image_size,
     list_images,
     make_camera,
     make_frame,
     read_matrix_txt,
+    world_to_cam_from_cam_to_world,
 )
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ def _split_frames(root: Path, split: str) -> list[Frame]:
     frames = []
     for img, pose_file, calib_file, depth_file in zip(rgb, poses, calib, depth):
         T = as_matrix(read_matrix_txt(pose_file), [(4, 4), (3, 4)], str(pose_file))
-        R, t = c2w_to_w2c(T[:3, :3], T[:3, 3], str(pose_file))
+        R, t = world_to_cam_from_cam_to_world(T[:3, :3], T[:3, 3], str(pose_file))
         frames.append(
             make_frame(
                 str(pose_file),

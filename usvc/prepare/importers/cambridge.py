@@ -51,7 +51,7 @@ def _key(name: str) -> str:
 
 
 def read_split_file(path: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(image name, camera centre, w2c quaternion wxyz) for each entry of a split file."""
+    """(image name, camera centre, world-to-camera quaternion wxyz) for each entry of a split file."""
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:

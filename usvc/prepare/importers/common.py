@@ -71,17 +71,19 @@ def as_matrix(value: Any, shapes: Iterable[tuple[int, int]], where: str, what: s
     return m
 
 
-def c2w_to_w2c(R_c2w: np.ndarray, center: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+def world_to_cam_from_cam_to_world(
+    R_cam_to_world: np.ndarray, center: np.ndarray, where: str
+) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) from a camera-to-world rotation and camera centre.
 
     Uses the transpose rather than a matrix inverse, so a degenerate pose is reported by the
     rotation check in :class:`Frame` instead of a numpy LinAlgError here.
     """
-    R_c2w = np.asarray(R_c2w, dtype=np.float64)
+    R_cam_to_world = np.asarray(R_cam_to_world, dtype=np.float64)
     center = np.asarray(center, dtype=np.float64).reshape(3)
-    if not (np.all(np.isfinite(R_c2w)) and np.all(np.isfinite(center))):
+    if not (np.all(np.isfinite(R_cam_to_world)) and np.all(np.isfinite(center))):
         raise SceneError(f"{where}: pose is not finite")
-    R = R_c2w.T
+    R = R_cam_to_world.T
     return R, -R @ center
 
 

@@ -18,11 +18,11 @@ from usvc.core.errors import SceneError
 from usvc.core.scene import Frame, Scene
 from usvc.prepare.importers.common import (
     assign_splits,
-    c2w_to_w2c,
     image_size,
     list_images,
     make_camera,
     make_frame,
+    world_to_cam_from_cam_to_world,
 )
 
 log = logging.getLogger(__name__)
@@ -65,8 +65,8 @@ def row_to_frame(row: np.ndarray, where: str, image: Path, name: str, split: str
         raise SceneError(f"{where}: (height, width, focal) must be positive and finite, got ({h}, {w}, {f})")
     R_llff = m[:, :3]
     # (down, right, backwards) -> (right, down, forward)
-    R_c2w = np.stack([R_llff[:, 1], R_llff[:, 0], -R_llff[:, 2]], axis=1)
-    R, t = c2w_to_w2c(R_c2w, m[:, 3], where)
+    R_cam_to_world = np.stack([R_llff[:, 1], R_llff[:, 0], -R_llff[:, 2]], axis=1)
+    R, t = world_to_cam_from_cam_to_world(R_cam_to_world, m[:, 3], where)
     W, H = size
     stretch = (W / w) / (H / h)
     if abs(stretch - 1) > MAX_ASPECT_CHANGE:

@@ -18,10 +18,10 @@ from usvc.core.errors import SceneError
 from usvc.core.scene import Camera, Frame, Scene, every_nth_split
 from usvc.prepare.importers.common import (
     as_matrix,
-    c2w_to_w2c,
     make_frame,
     natural_key,
     read_matrix_txt,
+    world_to_cam_from_cam_to_world,
 )
 
 log = logging.getLogger(__name__)
@@ -61,7 +61,7 @@ def _sequence_frames(root: Path, seq: str, split: str, source: Path) -> list[Fra
         stem = img.name[: -len(_COLOR_SUFFIX)]
         pose_file = seq_dir / f"{stem}.pose.txt"
         T = as_matrix(read_matrix_txt(pose_file), [(4, 4), (3, 4)], str(pose_file))
-        R, t = c2w_to_w2c(T[:3, :3], T[:3, 3], str(pose_file))
+        R, t = world_to_cam_from_cam_to_world(T[:3, :3], T[:3, 3], str(pose_file))
         depth = seq_dir / f"{stem}.depth.png"
         frames.append(
             make_frame(

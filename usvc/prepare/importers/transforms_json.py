@@ -32,10 +32,10 @@ from usvc.core.scene import Camera, Frame, Scene, every_nth_split
 from usvc.prepare.importers.common import (
     IMAGE_SUFFIXES,
     as_matrix,
-    c2w_to_w2c,
     image_size,
     make_camera,
     make_frame,
+    world_to_cam_from_cam_to_world,
 )
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ def _frames_from(json_path: Path, root: Path) -> list[tuple[str, Frame]]:
             continue
         where = f"{json_path} frame {i} ({file_path})"
         T = as_matrix(entry["transform_matrix"], [(4, 4), (3, 4)], where)
-        R, t = c2w_to_w2c(T[:3, :3] @ _GL_TO_CV, T[:3, 3], where)
+        R, t = world_to_cam_from_cam_to_world(T[:3, :3] @ _GL_TO_CV, T[:3, 3], where)
         camera = _camera({**top, **entry}, image, where)
         name = Path(os.path.relpath(image, root)).as_posix()
         frame = make_frame(where, name=name, image_path=image.resolve(), camera=camera, split="train", R=R, t=t)
