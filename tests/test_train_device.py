@@ -11,6 +11,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+import usvc.train.train_step as train_step
 import usvc.train.trainer as trainer
 from usvc.core.errors import UsvcError
 from usvc.train.trainer import TrainOptions, train_head
@@ -100,7 +101,7 @@ def test_the_block_length_does_not_change_the_map():
 
 def test_divergence_is_named_at_the_step_it_happened(monkeypatch):
     """The finite check reads the block's losses: it names the first step whose loss was not finite."""
-    real_loss = trainer.reprojection_loss
+    real_loss = train_step.reprojection_loss
     calls = []
 
     def failing(*args, **kwargs):
@@ -108,7 +109,7 @@ def test_divergence_is_named_at_the_step_it_happened(monkeypatch):
         calls.append(1)
         return (loss * float("nan") if len(calls) == 12 else loss), stats
 
-    monkeypatch.setattr(trainer, "reprojection_loss", failing)
+    monkeypatch.setattr(train_step, "reprojection_loss", failing)
     with pytest.raises(UsvcError, match=r"training diverged at iteration 11 \(loss nan\); lower train.lr"):
         train_head(_bundle_buffer(), 3.0, _opts(), head_width=32, head_blocks=1)
     assert len(calls) == 14  # caught at the end of the block (steps 7-13), not later
@@ -172,7 +173,7 @@ class _no_sync_warnings_outside_reads:
         self._catch = warnings.catch_warnings(record=True)
         self._records = self._catch.__enter__()
         warnings.simplefilter("always")
-        self._real = trainer.read_back, trainer.capture
+        self._real = trainer.read_back, train_step.capture
         records = self._records
 
         def allowed(real):
@@ -183,12 +184,12 @@ class _no_sync_warnings_outside_reads:
                 return out
             return call
 
-        trainer.read_back, trainer.capture = (allowed(real) for real in self._real)
+        trainer.read_back, train_step.capture = (allowed(real) for real in self._real)
         self.found: list[str] = []
         return self.found
 
     def __exit__(self, *exc):
-        trainer.read_back, trainer.capture = self._real
+        trainer.read_back, train_step.capture = self._real
         # CUDA's words for a call that waits ("called a synchronizing CUDA operation"); not its
         # notice that the debug mode is a prototype, which says "synchronizing operations" too.
         self.found.extend(str(r.message) for r in self._records

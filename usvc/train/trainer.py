@@ -26,13 +26,13 @@ from usvc.core.precision import autocast, resolve_precision
 from usvc.model.head import Head
 from usvc.train import fused_adamw
 from usvc.train.adabelief import AdaBelief
-from usvc.train.bundle_loss import bundle_loss
 from usvc.train.fused_adamw import FusedAdamW
 from usvc.train.graph_adamw import GraphAdamW
 from usvc.train.group_sampler import GroupSampler
 from usvc.train.options import TrainOptions
-from usvc.train.reprojection_loss import project_samples, reprojection_loss
+from usvc.train.reprojection_loss import project_samples
 from usvc.train.schedule import circle_threshold, rate_and_beta1
+from usvc.train.train_step import DeviceBuffer, StepRunner, TrainStep
 
 log = logging.getLogger(__name__)
 
@@ -165,34 +165,6 @@ def batch_draw(buf: TrainingBuffer, opts: TrainOptions, seed: int) -> _BatchDraw
     return _BatchDraw(len(buf.features), opts.batch_size, torch.Generator().manual_seed(seed), sampler)
 
 
-class _StepGraph:
-    """One training step captured as a CUDA graph and replayed: its inputs are copied into the
-    graph's own tensors first. Captured after a few steps run normally on a side stream (the
-    optimizer's state exists by then), as torch's whole-network capture does."""
-
-    WARMUP = 3
-
-    def __init__(self, step, example: tuple[torch.Tensor, ...]) -> None:
-        self.inputs = tuple(torch.empty_like(x) for x in example)
-        for mine, x in zip(self.inputs, example):
-            mine.copy_(x)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.out = step(*self.inputs)
-
-    def replay(self, *inputs: torch.Tensor) -> torch.Tensor:
-        for mine, x in zip(self.inputs, inputs):
-            mine.copy_(x)
-        self.graph.replay()
-        return self.out
-
-
-def capture(step, example: tuple[torch.Tensor, ...]) -> _StepGraph:
-    """The one place the loop waits for the device outside `read_back`: capturing a graph
-    synchronises once."""
-    return _StepGraph(step, example)
-
-
 @contextlib.contextmanager
 def _deterministic(device: str) -> Iterator[None]:
     """Same seed and device, same map: on CUDA, torch's deterministic kernels (the bundle loss's
@@ -255,62 +227,14 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     head = Head(in_channels=buf.features.shape[1], width=head_width, num_blocks=head_blocks)
     head.set_scene_center(mapping_center(buf))
     head.to(device).train()
-
-    # Once, to the device (no copy on the CPU): features stay fp16 there and batches are cast.
-    feats = torch.from_numpy(buf.features).to(device)
-    pixels = torch.from_numpy(buf.pixels).float().to(device)
-    view = torch.from_numpy(buf.view_index.astype(np.int64)).to(device)
-    Kv_host = torch.from_numpy(buf.view_K).float()
-    Rv = torch.from_numpy(buf.view_R_world_to_cam).float().to(device)
-    tv = torch.from_numpy(buf.view_t_world_to_cam).float().to(device)
-    Kv, Kinv = Kv_host.to(device), torch.linalg.inv(Kv_host).to(device)
-    if sampler is not None:
-        kp_feats = torch.from_numpy(buf.kp_features).to(device)
-        kp_pixels = torch.from_numpy(buf.kp_pixels).float().to(device)
-        kp_view = torch.from_numpy(buf.kp_view.astype(np.int64)).to(device)
-    depth_min, depth_max = opts.depth_min_rel * median_depth, opts.depth_max_rel * median_depth
-    invalid_depth = opts.invalid_depth_rel * median_depth
-
     optim = _optimizer(opts, head.parameters(), device)
+    step = TrainStep(head, optim, DeviceBuffer.of(buf, device, keypoints=sampler is not None), opts, precision,
+                     device, median_depth)
+    run = StepRunner(step, optim, device, opts)
     lrs, beta1s = schedule_values(opts)
     steps = torch.full((opts.iterations, 6), float("nan"), device=device)  # per-step statistics, on the device
     history = np.full((opts.iterations, 6), np.nan)
     validation: list[dict[str, float]] = []
-    nan = torch.full((), float("nan"), device=device)
-    tau_now = torch.zeros((), device=device)  # the threshold, refilled every step (a graph reads it there)
-    batch = opts.batch_size
-
-    def step(idx: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Forward, losses, backward and the optimizer's step on one batch (gradients already
-        cleared); the step's statistics as one device tensor."""
-        v = view[idx]
-        x = feats[idx].float()
-        if sampler is not None:
-            x = torch.cat([x, kp_feats[rows.flatten()].float()])
-        with autocast(precision, device, cache=False):
-            pred = head.forward_flat(x)
-        pix_loss, stats = reprojection_loss(
-            pred[:batch], pixels[idx], Rv[v], tv[v], Kv[v], Kinv[v], tau_now, depth_min=depth_min,
-            depth_max=depth_max, max_reproj=opts.max_reproj_px, invalid_depth=invalid_depth)
-        loss = opts.reproj_weight * pix_loss
-        b_loss = b_px = nan
-        if sampler is not None:
-            kv = kp_view[rows]
-            b_loss, b_stats = bundle_loss(
-                pred[batch:].reshape(*rows.shape, 3), mask, kp_pixels[rows], Rv[kv], tv[kv], Kv[kv], Kinv[kv], tau_now,
-                form=opts.bundle_loss, depth_min=depth_min, depth_max=depth_max, invalid_depth=invalid_depth,
-                max_reproj=opts.max_reproj_px)
-            loss = loss + opts.bundle_weight * b_loss
-            b_px = b_stats["reproj_median"]
-        loss.backward()
-        optim.step()
-        return torch.stack([loss.detach(), pix_loss.detach(), stats["valid_fraction"], stats["reproj_median"],
-                            b_loss.detach(), b_px]).float()
-
-    graphed = device.startswith("cuda") and opts.cuda_graph and opts.optimizer == "adamw"
-    graph: _StepGraph | None = None
-    graph_note = f"not captured (fewer than {_StepGraph.WARMUP + 1} steps)" if graphed else "off"
-    side = torch.cuda.Stream(device) if graphed else None
     start = time.perf_counter()
     bar = tqdm(total=opts.iterations, desc="train", unit="it")
     with _deterministic(device):
@@ -323,30 +247,12 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
                 inputs = (block.idx[k], *((block.rows[k], block.mask[k]) if sampler is not None
                                          else (no_groups[k], no_groups[k])))
                 tau = circle_threshold(it, opts.iterations, opts.threshold_start, opts.threshold_end)
-                tau_now.fill_(tau)
+                step.tau.fill_(tau)
                 _set_schedule(optim, lrs[it], beta1s[it])
-                if graph is None and graphed and it >= _StepGraph.WARMUP:
-                    optim.zero_grad(set_to_none=True)
-                    try:
-                        graph = capture(step, inputs)
-                        graph_note = "captured"
-                    except RuntimeError as exc:  # a torch or driver without what capture needs: step by step
-                        log.warning("training step by step: the CUDA graph capture failed (%s)", exc)
-                        graphed, graph_note = False, f"capture failed: {exc}"
-                if graph is not None:
-                    steps[it] = graph.replay(*inputs)
-                elif graphed:  # the steps before the capture, on a side stream as torch's capture recipe asks
-                    side.wait_stream(torch.cuda.current_stream(device))
-                    with torch.cuda.stream(side):
-                        optim.zero_grad(set_to_none=True)
-                        steps[it] = step(*inputs)
-                    torch.cuda.current_stream(device).wait_stream(side)
-                else:
-                    optim.zero_grad(set_to_none=True)
-                    steps[it] = step(*inputs)
+                steps[it] = run(it, inputs)
                 if heldout is not None and opts.validate_every and ((it + 1) % opts.validate_every == 0
                                                                     or it + 1 == opts.iterations):
-                    fit = heldout_fit(head, heldout, precision, depth_min, device)
+                    fit = heldout_fit(head, heldout, precision, step.depth_min, device)
                     validation.append({"iteration": it + 1, **fit})
                     log.debug("iteration %d: held-out median reprojection %.2f px, %.1f %% within 10 px", it + 1,
                               fit["median_reprojection_px"], 100 * fit["within_10px"])
@@ -365,6 +271,21 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
     bar.close()
     seconds = time.perf_counter() - start
     head.eval()
+    summary = _summary(history, opts, n, precision, seconds, median_depth, sampler,
+                       run.note if device.startswith("cuda") else None)
+    if validation:
+        summary["heldout_cells"] = len(heldout.features)
+        summary["heldout_curve"] = validation
+    log.info("trained head (%s, %s): %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
+             precision, device, opts.iterations, opts.batch_size, seconds, summary["final_loss"],
+             summary["final_valid_fraction"], summary["final_reproj_median_px"])
+    return head, summary
+
+
+def _summary(history: np.ndarray, opts: TrainOptions, n: int, precision: str, seconds: float, median_depth: float,
+             sampler: GroupSampler | None, graph_note: str | None) -> dict[str, Any]:
+    """The training statistics of `history` (per step, the columns of `TrainStep`): the last 5 %
+    of the steps for the final figures, a curve point per 100 steps."""
     tail = history[-max(1, len(history) // 20):]
     summary = {
         "iterations": opts.iterations,
@@ -379,11 +300,8 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
         "median_depth": float(median_depth),
         "loss_curve": [float(history[i:i + 100, _PIX].mean()) for i in range(0, len(history), 100)],
         "bundle_weight": opts.bundle_weight,
-        "cuda_graph": graph_note if device.startswith("cuda") else None,
+        "cuda_graph": graph_note,
     }
-    if validation:
-        summary["heldout_cells"] = len(heldout.features)
-        summary["heldout_curve"] = validation
     if sampler is not None:
         summary.update({
             "bundle_groups": sampler.num_groups,
@@ -392,7 +310,4 @@ def train_head(buf: TrainingBuffer, median_depth: float, opts: TrainOptions, *, 
             "final_bundle_reproj_median_px": float(np.nanmean(tail[:, _BUNDLE_PX])),
             "bundle_loss_curve": [float(history[i:i + 100, _BUNDLE].mean()) for i in range(0, len(history), 100)],
         })
-    log.info("trained head (%s, %s): %d it x %d in %.1f s, final loss %.3f, valid %.3f, median reprojection %.2f px",
-             precision, device, opts.iterations, opts.batch_size, seconds, summary["final_loss"],
-             summary["final_valid_fraction"], summary["final_reproj_median_px"])
-    return head, summary
+    return summary
