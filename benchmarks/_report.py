@@ -1,13 +1,18 @@
-"""Where every benchmark leaves its figures: `results/benchmarks/<name>.json`.
+"""Where every benchmark leaves its figures: `results/benchmarks/<name>.json`, one naming rule.
+
+A report's name is `<family>_<subcommand>[_<scene>][_<variant>...]` (`report_name`): the family
+and subcommand that wrote it (`python -m benchmarks.query speed` -> `query_speed`, a subcommand's
+hyphens as underscores), the scene it measured when it measured one (several: `office+bird+mini`),
+then the variants its arguments make (a size, a device, a precision, `--final images`), then the
+run's own `--variant LABEL` when given: `query_speed_mini_640x480_cuda`,
+`accuracy_baseline_sift_office_stage_model`, `pipeline_scaling_keyframes_240`.
 
 `write_report(name, result)` writes one benchmark run's dict of figures, keys in the order the
-script built them, with two fields added: `command`, the command line that produced it
-(`python benchmarks/<script> <args>`), and `context`, what the figures depend on besides the
-arguments (torch version and threads, CPU counts, thread environment, commit). `name` is the
-script's stem, plus a suffix when the run's arguments make it a different measurement (the scene,
-the device): `relocalization_speed_cpu`, `baseline_sift_office`. The file is written to a
-temporary sibling and renamed into place, so a failed or killed run never leaves a half-written
-report (a previous report of the same name stays as it was).
+subcommand built them, with two fields added: `command`, the command line that produced it
+(`python -m benchmarks.<family> <subcommand> <args>`), and `context`, what the figures depend on
+besides the arguments (torch version and threads, CPU counts, thread environment, commit). The file
+is written to a temporary sibling and renamed into place, so a failed or killed run never leaves a
+half-written report (a previous report of the same name stays as it was).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import shlex
 import subprocess
 import sys
 import tempfile
+from argparse import Namespace
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -32,10 +38,19 @@ _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]*")
 
 
 def command_line(argv: Sequence[str] | None = None) -> str:
-    """`python benchmarks/<script> <args>`, shell-quoted, from `argv` (default: sys.argv)."""
+    """`python -m benchmarks.<family> <subcommand> <args>`, shell-quoted, from `argv` (default:
+    sys.argv, whose first item is then the family's `__main__.py`)."""
     argv = list(sys.argv if argv is None else argv)
     script = Path(argv[0]) if argv else Path("?")
-    return shlex.join(["python", f"benchmarks/{script.name}", *argv[1:]])
+    module = script.parent.name if script.name == "__main__.py" else script.stem
+    return shlex.join(["python", "-m", f"benchmarks.{module}", *argv[1:]])
+
+
+def report_name(args: Namespace, scene: str | None = None, *variants: object) -> str:
+    """`<family>_<subcommand>[_<scene>][_<variant>...]` for a subcommand's parsed `args` (the
+    dispatcher sets `family` and `subcommand`; `--variant` comes last). Empty parts are left out."""
+    parts = [args.family, args.subcommand.replace("-", "_"), scene, *variants, getattr(args, "variant", None)]
+    return "_".join(str(p) for p in parts if p not in (None, ""))
 
 
 def _commit() -> str | None:
@@ -74,7 +89,7 @@ def _plain(value):
 
 
 def write_out(path: Path, text: str) -> None:
-    """A script's own copy of its figures (its --out), into `path`'s folder, made if it is missing."""
+    """A subcommand's own copy of its figures (its --out), into `path`'s folder, made if it is missing."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
 
@@ -83,8 +98,8 @@ def write_report(name: str, result: dict, *, argv: Sequence[str] | None = None,
                  directory: Path | None = None) -> Path:
     """Write `result` to <directory>/<name>.json (default results/benchmarks), atomically.
 
-    The file holds `command` (from `argv`, default sys.argv), then `result`'s keys in their
-    order, then `context`. Returns the path written.
+    `name`: `report_name(args, ...)`. The file holds `command` (from `argv`, default sys.argv),
+    then `result`'s keys in their order, then `context`. Returns the path written.
     """
     if not _NAME.fullmatch(name):
         raise ValueError(f"report name {name!r}: letters, digits and _ . + - only")

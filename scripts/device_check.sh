@@ -13,7 +13,7 @@
 #   bash scripts/device_check.sh --real bird # the same, then bird from its photos (carry data/raw/bird)
 #   bash scripts/device_check.sh --quick     # anywhere, in minutes: the same steps, short (CPU too)
 #   bash scripts/device_check.sh --scaling 3840  # instead of those steps: the generated room at 3,840
-#                                            # mapping frames, every stage on the device (benchmarks/scaling.py)
+#                                            # mapping frames, every stage on the device (benchmarks.pipeline scaling)
 #
 # Everything goes to $OUT (default results/device/): device.txt (the card, torch, COLMAP), steps.txt,
 # benchmarks/*.json (each benchmark's report), logs/<step>.log. Where DIR (--wheels, default .whl/)
@@ -64,27 +64,27 @@ steps=()
 add() { steps+=("$1|$2|${*:3}"); }
 cuda_tests="$(grep -lE 'pytest\.mark\.cuda' "$REPO"/tests/test_*.py | sed "s|$REPO/||" | tr '\n' ' ')"
 if [[ -n "$scaling" ]]; then  # the scaling figure alone: every stage of the room at that size, on the device
-    add "scaling_$scaling" "$budget" "$python benchmarks/scaling.py --frames $scaling --threads $(nproc) --name scaling_device_$scaling -- device=auto"
+    add "scaling_$scaling" "$budget" "$python -m benchmarks.pipeline scaling --frames $scaling --threads $(nproc) --variant device_$scaling -- device=auto"
 elif [[ $quick == 1 ]]; then
     add pytest_cuda 120 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
-    add pipeline 400 "$python benchmarks/device_pipeline.py --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
-    add query 120 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"
-    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto --processes"
-    add profile_8192 120 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --iterations 5 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
+    add pipeline 400 "$python -m benchmarks.pipeline device --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
+    add query 120 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"
+    add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto --processes"
+    add profile_8192 120 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --iterations 5 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 else
     add pytest_cuda 90 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
-    add pipeline 240 "$python benchmarks/device_pipeline.py --device auto --work $work --batch-sizes 2048 8192"
-    add query 60 "$python benchmarks/query_speed.py --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
-    add folder 120 "$python benchmarks/folder_throughput.py --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
-    add profile_8192 60 "$python benchmarks/step_profile.py --scene mini --data $work/mini/data --device auto --name step_profile_mini_batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
+    add pipeline 240 "$python -m benchmarks.pipeline device --device auto --work $work --batch-sizes 2048 8192"
+    add query 60 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
+    add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
+    add profile_8192 60 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --variant batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
 # A real scene from its photos, every stage as `dvc repro` runs it (the training target's second
 # scene), with what is left of the budget: last, so that it never takes the others' time.
 for name in "${real[@]}"; do
     if [[ $quick == 1 ]]; then
-        add "real_$name" 400 "$python benchmarks/device_pipeline.py --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0 -- train.iterations=30"
+        add "real_$name" 400 "$python -m benchmarks.pipeline device --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0 -- train.iterations=30"
     else
-        add "real_$name" 300 "$python benchmarks/device_pipeline.py --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0"
+        add "real_$name" 300 "$python -m benchmarks.pipeline device --device auto --scene $name --work $work --from prepare --no-repeat --batch-sizes --profile-iterations 0"
     fi
 done
 

@@ -1,38 +1,34 @@
-"""Every benchmark leaves its figures in results/benchmarks/<name>.json, through benchmarks/_report.py."""
+"""Every benchmark leaves its figures in results/benchmarks/<name>.json, through benchmarks/_report.py,
+under one naming rule: <family>_<subcommand>[_<scene>][_<variant>]."""
 
 from __future__ import annotations
 
 import ast
-import importlib.util
 import json
 import os
+import re
+from argparse import Namespace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from benchmarks import _cli
+from benchmarks import _report as report
+
 REPO = Path(__file__).resolve().parents[1]
 BENCHMARKS = REPO / "benchmarks"
 
 
-def _load_report_module():
-    spec = importlib.util.spec_from_file_location("_benchmark_report", BENCHMARKS / "_report.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-report = _load_report_module()
-
-
 def test_writes_valid_json_with_command_and_context(tmp_path):
     result = {"scene": "mini", "seconds": 1.5, "rows": [{"a": 1}], "n": np.int64(3), "v": np.float32(0.5)}
-    out = report.write_report("demo_mini", result, argv=["/x/benchmarks/demo.py", "--scene", "mini", "a b"],
+    out = report.write_report("demo_mini", result,
+                              argv=["/x/benchmarks/demo/__main__.py", "speed", "--scene", "mini", "a b"],
                               directory=tmp_path / "nested")
     assert out == tmp_path / "nested" / "demo_mini.json"
     text = out.read_text()
     data = json.loads(text)
-    assert data["command"] == "python benchmarks/demo.py --scene mini 'a b'"
+    assert data["command"] == "python -m benchmarks.demo speed --scene mini 'a b'"
     assert list(data) == ["command", "scene", "seconds", "rows", "n", "v", "context"]  # the order the script gave
     assert data["n"] == 3 and data["v"] == 0.5 and data["rows"] == [{"a": 1}]
     ctx = data["context"]
@@ -123,6 +119,14 @@ def test_bad_names_are_refused(tmp_path, name):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_one_naming_rule_family_subcommand_scene_variants():
+    args = Namespace(family="query", subcommand="before-after", variant=None)
+    assert report.report_name(args) == "query_before_after"
+    args = Namespace(family="query", subcommand="speed", variant="poselib")
+    assert report.report_name(args, "mini", "640x480", None, "") == "query_speed_mini_640x480_poselib"
+    assert report.report_name(Namespace(family="pipeline", subcommand="scaling"), None, 3) == "pipeline_scaling_3"
+
+
 def test_scene_of():
     assert report.scene_of(Path("data/mini/buffer/buffer.h5"), "buffer") == "mini"
     assert report.scene_of(Path("data/office_photos/prepared"), "prepared") == "office_photos"
@@ -132,7 +136,8 @@ def test_scene_of():
 
 # --- every benchmark writes a report -----------------------------------------------------------
 
-SCRIPTS = sorted(p for p in BENCHMARKS.glob("*.py") if not p.name.startswith("_"))  # _report.py, _photos.py: helpers
+SCRIPTS = sorted(BENCHMARKS / family / f"{module}.py" for family in _cli.FAMILIES
+                 for module, _ in _cli.family_package(family).SUBCOMMANDS.values())
 
 
 def _docstrings(tree: ast.Module) -> set[int]:
@@ -167,6 +172,22 @@ def writes_report(source: str) -> bool:
     return False
 
 
+def names_outside_the_rule(source: str) -> list[str]:
+    """The write_report calls whose name is not `report_name(...)` (the one naming rule), as source."""
+    tree = ast.parse(source)
+    calls = [node for node in ast.walk(tree) if isinstance(node, ast.Call)
+             and getattr(node.func, "id", getattr(node.func, "attr", None)) == "write_report"]
+    names = {node.targets[0].id: node.value for node in ast.walk(tree)  # name = report_name(...); write_report(name)
+             if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)}
+    out = []
+    for call in calls:
+        arg = call.args[0] if call.args else None
+        arg = names.get(arg.id, arg) if isinstance(arg, ast.Name) else arg
+        if not (isinstance(arg, ast.Call) and getattr(arg.func, "id", None) == "report_name"):
+            out.append(ast.unparse(call.args[0]) if call.args else "(none)")
+    return out
+
+
 def test_the_static_check_catches_a_benchmark_that_forgets():
     assert not writes_report('"""Prints; writes results/benchmarks/x.json (says the docstring)."""\nprint(1)\n')
     assert not writes_report("def main():\n    print({'a': 1})\n")
@@ -176,14 +197,36 @@ def test_the_static_check_catches_a_benchmark_that_forgets():
     assert writes_report("out = 'results/benchmarks/x.json'\n")
 
 
+def test_the_static_check_catches_a_name_outside_the_rule():
+    assert names_outside_the_rule("write_report('x_y', {})\n") == ["'x_y'"]
+    assert names_outside_the_rule("n = f'x_{a}'\nwrite_report(n, {})\n") == ["n"]
+    assert not names_outside_the_rule("n = report_name(args, s)\nwrite_report(n, {})\n")
+    assert not names_outside_the_rule("print(write_report(report_name(args), {}))\n")
+
+
 def test_there_are_benchmarks():
-    assert len(SCRIPTS) >= 10
+    assert len(SCRIPTS) >= 20 and all(s.is_file() for s in SCRIPTS)
 
 
-@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_every_benchmark_writes_a_report(script):
     source = script.read_text()
     assert writes_report(source), (f"{script.name} does not write results/benchmarks/<name>.json: "
                                    "build a dict of its figures and call _report.write_report")
+    assert not names_outside_the_rule(source), "name reports with _report.report_name (one naming rule)"
     doc = ast.get_docstring(ast.parse(source)) or ""
-    assert "results/benchmarks/" in doc, f"{script.name}'s docstring does not say where its JSON goes"
+    family = script.parent.name
+    assert f"results/benchmarks/{family}_" in doc, f"{script.name}'s docstring does not say where its JSON goes"
+    assert f"python -m benchmarks.{family} " in doc, f"{script.name}'s docstring does not say how to run it"
+
+
+KNOWN = {f"{family}_{name.replace('-', '_')}" for family in _cli.FAMILIES
+         for name in _cli.family_package(family).SUBCOMMANDS}
+
+
+def test_every_committed_report_is_named_by_the_rule():
+    """results/benchmarks/<family>_<subcommand>[_<scene>][_<variant>].json: a committed report starts
+    with the family and subcommand that write it."""
+    names = [p.stem for p in sorted((REPO / "results" / "benchmarks").glob("*.json"))]
+    assert names and all(re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", n) for n in names)
+    assert [n for n in names if not any(n == k or n.startswith(k + "_") for k in KNOWN)] == []

@@ -1,41 +1,79 @@
-"""Benchmarks that cannot rot: every script in benchmarks/ parses its arguments (`--help` runs its
-imports and argument parser), and the ones with a tiny input run it, so a config or API change that
-breaks one fails here rather than on the next person who measures."""
+"""Benchmarks that cannot rot: every family of benchmarks/ and every subcommand parses its
+arguments (`--help` runs its imports and argument parser), no file edits `sys.path` (the package is
+run as `python -m benchmarks.<family>`), and the subcommands with a tiny input run it, so a config or
+API change that breaks one fails here rather than on the next person who measures."""
 
 from __future__ import annotations
 
 import json
 import os
 import re
-import runpy
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from benchmarks import _cli
+
 REPO = Path(__file__).resolve().parents[1]
-SCRIPTS = sorted(p for p in (REPO / "benchmarks").glob("*.py") if not p.name.startswith("_"))
+SUBCOMMANDS = [(family, name) for family in _cli.FAMILIES
+               for name in _cli.family_package(family).SUBCOMMANDS]
 
 
-@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
-def test_every_benchmark_imports_and_parses_its_arguments(script, monkeypatch, capsys):
-    monkeypatch.syspath_prepend(str(script.parent))
-    monkeypatch.setattr(sys, "argv", [str(script), "--help"])
+def test_no_benchmark_edits_sys_path():
+    """The package imports as a package (`from benchmarks._report import ...`, usvc installed):
+    nothing in benchmarks/ puts a folder on `sys.path`."""
+    edits = [f"{p.relative_to(REPO)}:{n}" for p in sorted((REPO / "benchmarks").rglob("*.py"))
+             for n, line in enumerate(p.read_text().splitlines(), 1) if re.search(r"\bsys\.path\b", line)]
+    assert not edits, edits
+
+
+def test_every_module_of_a_family_is_a_subcommand_or_a_helper():
+    """A module in a family's folder is one of its subcommands, or a helper whose name starts with `_`
+    or that a subcommand imports (the baseline's method, the map diagnosis)."""
+    helpers = {"accuracy": {"sift_pnp", "diagnosis"}}
+    for family in _cli.FAMILIES:
+        modules = {p.stem for p in (REPO / "benchmarks" / family).glob("*.py") if not p.stem.startswith("_")}
+        used = {module for module, _ in _cli.family_package(family).SUBCOMMANDS.values()}
+        assert modules == used | helpers.get(family, set()), family
+
+
+@pytest.mark.parametrize("family", _cli.FAMILIES)
+def test_every_family_runs_as_a_module_and_lists_its_subcommands(family):
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{family}", "--help"], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith(f"usage: python -m benchmarks.{family}")
+    assert all(name in proc.stdout for name in _cli.family_package(family).SUBCOMMANDS)
+
+
+@pytest.mark.parametrize("family, name", SUBCOMMANDS, ids=[f"{f}-{n}" for f, n in SUBCOMMANDS])
+def test_every_subcommand_parses_its_arguments(family, name, capsys):
     with pytest.raises(SystemExit) as exit_:
-        runpy.run_path(str(script), run_name="__main__")
+        _cli.main(family, [name, "--help"])
     assert exit_.value.code in (0, None)
-    assert "usage:" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: python -m benchmarks.{family} {name}") and "--variant" in out
+
+
+def test_the_package_docstring_names_every_subcommand():
+    import benchmarks
+
+    assert all(re.search(rf"\b{re.escape(name)}\b", benchmarks.__doc__) for _, name in SUBCOMMANDS)
 
 
 def test_relocalization_speed_runs_every_configured_model(tmp_path):
     """Each conf/model/*.yaml as the stages compose it (a model file sets only what differs)."""
     env = {**os.environ, "USVC_BENCHMARK_DIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "benchmarks/relocalization_speed.py", "--runs", "1", "--warmup", "0",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.query", "models", "--runs", "1", "--warmup", "0",
                            "--sizes", "64x48", "--precision", "fp32"], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = json.loads((tmp_path / "relocalization_speed_cpu.json").read_text())["rows"]
+    report = json.loads((tmp_path / "query_models_cpu.json").read_text())
+    assert report["command"] == ("python -m benchmarks.query models --runs 1 --warmup 0 --sizes 64x48 "
+                                 "--precision fp32")
+    rows = report["rows"]
     models = sorted(p.stem for p in (REPO / "conf" / "model").glob("*.yaml"))
     assert [r["model"] for r in rows] == models
     by_model = {r["model"]: r for r in rows}
@@ -43,12 +81,12 @@ def test_relocalization_speed_runs_every_configured_model(tmp_path):
     assert all(r["encoder_ms"] > 0 and r["head_blocks"] >= 0 for r in rows)
 
 
-def test_query_photos_at_a_size_keep_square_pixels(monkeypatch):
+def test_query_photos_at_a_size_keep_square_pixels():
     """A photo is cropped about its centre to the size's aspect ratio, then resized: the pixels stay
     square and a world point projects to the same place in the new photo as in the old one."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
     import numpy as np
-    from _photos import at_size
+
+    from benchmarks._photos import at_size
 
     rgb = np.zeros((960, 544, 3), np.uint8)  # portrait, bird's size: 480x640 asks for a 3:4 crop
     rgb[500, 300] = 255
@@ -67,10 +105,9 @@ def test_query_photos_at_a_size_keep_square_pixels(monkeypatch):
 
 
 def test_device_pipeline_gives_the_stages_the_device_setting_as_asked(tmp_path, monkeypatch):
-    """`--device auto` runs the stages as `dvc repro` does with the default config (device=auto: a
-    skipped 3DGS stage then loads no torch), not with the device it resolved to."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    import device_pipeline
+    """`pipeline device --device auto` runs the stages as `dvc repro` does with the default config
+    (device=auto: a skipped 3DGS stage then loads no torch), not with the device it resolved to."""
+    from benchmarks.pipeline import device as device_pipeline
 
     seen = []
 
@@ -86,13 +123,12 @@ def test_device_pipeline_gives_the_stages_the_device_setting_as_asked(tmp_path, 
 
 
 def test_step_profile_counts_a_steps_operators_and_ranks_them(monkeypatch):
-    """benchmarks/step_profile.py on a tiny buffer: per-step counts (the head's products are there
-    once per layer and pass), its own times ranked, the step's wall; kernels only where there is a
-    device."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    """`train profile` on a tiny buffer: per-step counts (the head's products are there once per
+    layer and pass), its own times ranked, the step's wall; kernels only where there is a device."""
     monkeypatch.syspath_prepend(str(REPO / "tests"))
-    from step_profile import profile_training
     from test_train_device import _bundle_buffer, _opts
+
+    from benchmarks.train.step_profile import profile_training
 
     record = profile_training(_bundle_buffer(), 3.0, _opts(report_every=5), head_width=32, head_blocks=1,
                               device="cpu", iterations=10)
@@ -109,14 +145,13 @@ def test_step_profile_counts_a_steps_operators_and_ranks_them(monkeypatch):
     assert products.get("aten::addmm") == 9 and products.get("aten::mm", 0) >= 9
 
 
-def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked(monkeypatch):
-    """benchmarks/wrong_prior.py: the perturbed pose is turned by exactly the degrees asked about
-    an axis through the camera centre, and its centre moved by exactly the shift asked."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked():
+    """`accuracy wrong-prior`: the perturbed pose is turned by exactly the degrees asked about an
+    axis through the camera centre, and its centre moved by exactly the shift asked."""
     import numpy as np
     from scipy.spatial.transform import Rotation
-    from wrong_prior import perturbed_pose
 
+    from benchmarks.accuracy.wrong_prior import perturbed_pose
     from usvc.core.geometry import camera_centers
 
     rng = np.random.default_rng(3)
@@ -130,39 +165,62 @@ def test_wrong_prior_turns_and_moves_the_learned_pose_by_what_it_is_asked(monkey
         assert np.allclose(R2 @ R2.T, np.eye(3), atol=1e-12)
 
 
-def test_pipeline_time_records_the_cpu_and_each_scenes_training_precision(tmp_path, monkeypatch):
-    """A mapping time is a figure of its CPU: benchmarks/pipeline_time.py records the model, whether
-    it runs bf16 natively, and the precision each scene's training resolved `auto` to."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    import pipeline_time
-
+def test_pipeline_time_records_the_cpu_and_each_scenes_training_precision(tmp_path):
+    """A mapping time is a figure of its CPU: `pipeline time` and `pipeline fresh` record the model,
+    whether it runs bf16 natively, and the precision each scene's training resolved `auto` to."""
+    from benchmarks.pipeline._stages import machine
     from usvc.core.precision import cpu_has_native_bf16
 
     results = tmp_path / "results"
     (results / "mini").mkdir(parents=True)
     (results / "mini" / "train.json").write_text(json.dumps({"precision": "bf16", "iterations": 500}))
-    info = pipeline_time.machine(results, ["mini", "office"])
+    info = machine(results, ["mini", "office"])
     assert info["train_precision"] == {"mini": "bf16"}  # office has no train.json: not listed
     assert info["native_bf16"] is cpu_has_native_bf16()
     assert isinstance(info["cpu_model"], str) and info["cpu_model"]
 
 
-def test_pipeline_time_maps_a_capture_only_in_a_fresh_clone(tmp_path):
-    """`--map PHOTOS` times `usvc map` in a fresh clone; without `--fresh` it would add the scene to
-    this checkout, so it is refused before anything runs."""
-    proc = subprocess.run([sys.executable, "benchmarks/pipeline_time.py", "--map", str(tmp_path)], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2 and "--fresh" in proc.stderr
+def test_pipeline_maps_a_capture_only_in_a_fresh_clone(tmp_path):
+    """`--map PHOTOS` times `usvc map` in a fresh clone (`pipeline fresh`); `pipeline time` runs in
+    this checkout, where it would add the scene, so it has no `--map` and refuses one before anything
+    runs."""
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.pipeline", "time", "--scene", "mini", "--map",
+                           str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "unrecognized arguments: --map" in proc.stderr
 
 
 def test_query_before_after_pairs_each_scene_with_the_revisions_folder():
     """`--before-scene-dir` gives the revision one folder per scene (a map's landmarks in the format
     that code reads); a count that does not pair up stops before any worktree is made."""
-    proc = subprocess.run([sys.executable, "benchmarks/query_before_after.py", "--before", "HEAD",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.query", "before-after", "--before", "HEAD",
                            "--scene-dir", "data/mini", "data/office", "--before-scene-dir", "data/mini"],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2
     assert "--before-scene-dir: 1 folders for 2 --scene-dir" in proc.stderr
+
+
+def test_before_after_runs_each_tree_with_its_own_usvc(tmp_path):
+    """Each timed run of `query before-after` is `_revision_run.py` with one tree first on its
+    PYTHONPATH: `usvc` comes from that tree (here this checkout: it gets as far as the scene), and a
+    tree whose `usvc` is not the one imported stops the run rather than timing the wrong code."""
+    child = REPO / "benchmarks" / "query" / "_revision_run.py"
+    args = [str(tmp_path / "nowhere"), "own", "1", "opencv", "default", str(tmp_path / "run.json")]
+    for tree, expected in ((REPO, "prepared scene not found"), (tmp_path, f"not from {tmp_path}")):
+        env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
+        proc = subprocess.run([sys.executable, str(child), str(tree), *args], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode != 0 and expected in proc.stderr, proc.stderr[-2000:]
+    assert not (tmp_path / "run.json").exists()
+
+
+def _benchmark_called(step: str) -> tuple[str, str]:
+    """(family, subcommand) of the `python -m benchmarks.<family> <subcommand>` a step runs; the
+    subcommand must be one the family has."""
+    words = step.split()
+    k = words.index("-m")
+    family = words[k + 1].removeprefix("benchmarks.")
+    assert words[k + 1].startswith("benchmarks.") and words[k + 2] in _cli.family_package(family).SUBCOMMANDS
+    return family, words[k + 2]
 
 
 @pytest.mark.parametrize("quick", [False, True])
@@ -177,12 +235,12 @@ def test_device_check_runs_existing_benchmarks_within_one_call(quick):
     assert names == ["pytest_cuda", "pipeline", "query", "folder", "profile_8192"]
     limits = [int(line.split("(")[1].split(" s)")[0]) for line in lines]
     assert sum(limits) <= int(budget.split()[1]) <= (900 if quick else 570)  # every step's limit is cut to the budget
-    scripts = [word for line in lines for word in line.split() if word.startswith("benchmarks/")]
-    assert len(scripts) == 4 and all((REPO / s).is_file() for s in scripts)
+    called = [_benchmark_called(line) for line in lines[1:]]
+    assert called == [("pipeline", "device"), ("query", "speed"), ("query", "folder"), ("train", "profile")]
     *with_bird, _ = subprocess.run(args + ["--real", "bird"], capture_output=True, text=True, check=True,
                                    timeout=60).stdout.splitlines()
     assert with_bird[:-1] == lines and with_bird[-1].startswith("real_bird (")  # last: it gets what is left
-    assert "benchmarks/device_pipeline.py" in with_bird[-1] and "--scene bird --work" in with_bird[-1]
+    assert _benchmark_called(with_bird[-1]) == ("pipeline", "device") and "--scene bird --work" in with_bird[-1]
     assert "--from prepare" in with_bird[-1]
     cuda_mark = re.compile(r"pytest\.mark\.cuda")
     marked = sorted(p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_*.py")
@@ -190,13 +248,11 @@ def test_device_check_runs_existing_benchmarks_within_one_call(quick):
     assert sorted(w for w in lines[0].split() if w.startswith("tests/")) == marked and marked
 
 
-def test_localize_cli_runs_the_command_line_a_user_types(monkeypatch):
-    """localize_cli.py times `usvc localize` itself: the command it builds parses as the CLI's own
-    (the map, the photos in order, the intrinsics to the precision the photos' were given), and a
-    command that fails stops the benchmark with the command and its error rather than a figure."""
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    from localize_cli import localize_command, run_command, summary
-
+def test_localize_cli_runs_the_command_line_a_user_types():
+    """`query cli` times `usvc localize` itself: the command it builds parses as the CLI's own (the
+    map, the photos in order, the intrinsics to the precision the photos' were given), and a command
+    that fails stops the benchmark with the command and its error rather than a figure."""
+    from benchmarks.query.cli import localize_command, run_command, summary
     from usvc.cli import build_parser
 
     cmd = localize_command(Path("m/map.pt"), (754.2609, 754.2609, 640.0, 360.0), [Path("b.jpg"), Path("a.jpg")], 2)
@@ -240,9 +296,9 @@ def test_device_check_cuts_every_step_to_what_is_left_of_its_budget(tmp_path):
 
 @pytest.mark.slow
 def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
-    """benchmarks/scaling.py at two tiny sizes of the generated room, in a copy of the checkout:
-    each size's stages, bytes, query time and both accuracies in the JSON, the log-log plot beside
-    it, and the generated scenes' folders removed afterwards."""
+    """`pipeline scaling` at two tiny sizes of the generated room, in a copy of the checkout: each
+    size's stages, bytes, query time and both accuracies in the JSON, the log-log plot beside it,
+    and the generated scenes' folders removed afterwards."""
     import shutil
 
     checkout = tmp_path / "checkout"
@@ -252,12 +308,13 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
     for name in ("dvc.yaml", "params.yaml"):
         shutil.copy(REPO / name, checkout / name)
     env = {**os.environ, "USVC_BENCHMARK_DIR": str(tmp_path / "reports"), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "benchmarks/scaling.py", "--frames", "8", "12", "--threads", "1",
-                           "--checkout", str(checkout), "--name", "scaling_smoke", "--", "train.iterations=20",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.pipeline", "scaling", "--frames", "8", "12",
+                           "--threads", "1", "--checkout", str(checkout), "--variant", "smoke", "--",
+                           "train.iterations=20",
                            "buffer.min_size=8192", "generate.n_query_frames=3", "generate.supersample=1"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    report = json.loads((tmp_path / "reports" / "scaling_smoke.json").read_text())
+    report = json.loads((tmp_path / "reports" / "pipeline_scaling_smoke.json").read_text())
     sizes = report["sizes"]
     assert [s["mapping_frames"] for s in sizes] == [8, 12] and [s["scene"] for s in sizes] == ["room8", "room12"]
     for s in sizes:
@@ -266,5 +323,5 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
         assert s["map_bytes"] > 0 and s["landmarks_bytes"] > 0 and s["query_ms_median"] > 0
         assert s["queries"] == 3 and 0 <= s["share_without_fallback"] <= 1 and s["train_steps"] == 20
         assert "acc_5cm_5deg" in s["metrics"] and "initial_acc_5cm_5deg" in s["metrics"]
-    assert (tmp_path / "reports" / "scaling_smoke.png").stat().st_size > 10_000
+    assert (tmp_path / "reports" / "pipeline_scaling_smoke.png").stat().st_size > 10_000
     assert not any((checkout / "data").glob("room*")) and not any((checkout / "results").glob("room*"))

@@ -113,15 +113,17 @@ def test_a_script_asked_for_a_config_that_is_not_there_gets_one_line_naming_it(s
 
 
 def test_a_benchmark_given_bad_input_says_so_in_one_line():
-    proc = subprocess.run([sys.executable, "benchmarks/compare_poses.py", "--scene", "nosuch", "--a", "a.txt",
-                           "--b", "b.txt"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.accuracy", "compare-poses", "--scene", "nosuch",
+                           "--a", "a.txt", "--b", "b.txt"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1
-    assert proc.stderr.strip().splitlines()[-1].startswith("compare_poses.py: config scene=nosuch:")
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("python -m benchmarks.accuracy compare-poses: config scene=nosuch:")
     assert "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, "benchmarks/baseline_sift.py", "--scene", "nosuch"], cwd=REPO,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.accuracy", "baseline-sift", "--scene", "nosuch"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
-    assert proc.stderr.strip().splitlines()[-1].startswith("baseline_sift.py: config scene=nosuch:")
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("python -m benchmarks.accuracy baseline-sift: config scene=nosuch:")
 
 
 def test_shipped_ace_encoders_work_at_a_192_px_short_side():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from usvc.analysis.diagnosis import (
+from benchmarks.accuracy.diagnosis import (
     BEHIND_PX,
     keypoint_errors,
     reprojection_px,

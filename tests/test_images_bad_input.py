@@ -4,7 +4,6 @@ differ between two scenes of one capture. Each gets one clear line (or decodes r
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import struct
 import zlib
@@ -27,8 +26,6 @@ from usvc.metrics.alignment import align_and_compare
 from usvc.prepare.working_images import prepare_scene
 from usvc.sfm.pose_check import pose_agreement, poses_disagree, warn_if_poses_disagree
 from usvc.sfm.reconstruction import register_images
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 # --- 1. a header that claims hundreds of megapixels -------------------------------------------
@@ -328,16 +325,9 @@ def test_larger_images_get_a_larger_pair_threshold(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def sfm_posing(tmp_path_factory):
-    spec = importlib.util.spec_from_file_location("sfm_posing_benchmark", REPO / "benchmarks" / "sfm_posing.py")
-    module = importlib.util.module_from_spec(spec)
-    import sys
+    from benchmarks.accuracy import sfm_posing
 
-    sys.path.insert(0, str(REPO / "benchmarks"))  # for its `_report` import, as when run as a script
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
-    return module
+    return sfm_posing
 
 
 def _posed(names: list[str], scale: float = 1.0) -> list[Frame]:

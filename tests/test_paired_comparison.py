@@ -1,4 +1,4 @@
-"""Two methods compared query by query (usvc/metrics/paired.py, benchmarks/compare_poses.py)."""
+"""Two methods compared query by query (usvc/metrics/paired.py, `python -m benchmarks.accuracy compare-poses`)."""
 
 from __future__ import annotations
 
@@ -112,7 +112,7 @@ def test_query_errors_follow_the_split_and_refuse_poses_of_other_images():
 
 @pytest.mark.slow
 def test_compare_poses_pairs_two_poses_files_of_the_scene(inputs):  # noqa: F811 (the imported fixture)
-    """benchmarks/compare_poses.py on the stage's inputs: the relocalized poses (one query missing,
+    """`benchmarks.accuracy compare-poses` on the stage's inputs: the relocalized poses (one query missing,
     one moved 3 cm) against the exact ones: the missing and the moved query are where the exact
     file is the closer, the rest are equal, and the shares differ by exactly those queries."""
     scene = stage_scene(metric_scale=1.0)
@@ -122,12 +122,12 @@ def test_compare_poses_pairs_two_poses_files_of_the_scene(inputs):  # noqa: F811
                     np.stack([exact[n][1] for n in names]))
     env = {**os.environ, "USVC_BENCHMARK_DIR": str(inputs / "reports"), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
-        [sys.executable, "benchmarks/compare_poses.py", "--scene", "mini", "--a",
+        [sys.executable, "-m", "benchmarks.accuracy", "compare-poses", "--scene", "mini", "--a",
          str(inputs / "data/mini/relocalize/poses.txt"), "--b", str(inputs / "exact.txt"), "--a-name", "usvc",
          "--b-name", "exact", "--resamples", "300", f"data_dir={inputs / 'data'}"],
         cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    report = json.loads((inputs / "reports" / "compare_poses_mini_usvc_vs_exact.json").read_text())
+    report = json.loads((inputs / "reports" / "accuracy_compare_poses_mini_usvc_vs_exact.json").read_text())
     n = N_QUERIES
     assert report["queries"] == n and report["failed"] == {"a": 1, "b": 0}
     assert report["per_query"]["b_closer"] == 2 and report["per_query"]["a_closer"] == 0

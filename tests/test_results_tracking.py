@@ -58,7 +58,7 @@ def test_git_ignores_timings_and_anything_else_under_results():
     others = ["results/mini/diagnosis.json", "results/mini/plots/extra.png", "results/mini/sub/metrics.json",
               "results/notes.json", "results/benchmarks/run.timing.json"]
     assert _ignored(timings + others) == set(timings + others)
-    assert not _ignored(["results/benchmarks/fresh_repro.json"])  # quoted by the docs
+    assert not _ignored(["results/benchmarks/pipeline_fresh.json"])  # quoted by the docs
 
 
 def test_metrics_lists_only_the_headline():

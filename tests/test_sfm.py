@@ -171,7 +171,7 @@ def test_sift_pnp_baseline_localizes_the_queries_without_using_their_poses(small
     """The classical baseline: queries matched to the mapping model only; their poses are never read."""
     from dataclasses import replace
 
-    from usvc.analysis.baseline_sift import sift_pnp_baseline
+    from benchmarks.accuracy.sift_pnp import sift_pnp_baseline
     from usvc.core.pose_errors import rotation_error_deg, translation_error
 
     scene = read_scene_h5(small_mini / "scene.h5")
@@ -203,7 +203,7 @@ def test_sift_pnp_baseline_on_a_given_model_lifts_to_its_points(small_mini, tmp_
 
     import pycolmap
 
-    from usvc.analysis.baseline_sift import sift_pnp_baseline
+    from benchmarks.accuracy.sift_pnp import sift_pnp_baseline
     from usvc.core.pose_errors import rotation_error_deg, translation_error
 
     scene = read_scene_h5(small_mini / "scene.h5")
