@@ -128,7 +128,7 @@ class Query:
     resize: float  # the working size over the photo's
     camera: Camera | None  # gray's camera, None while the focal length is unknown
     full_camera: Camera | None  # the undistorted photo's, at its own size: what the features see
-    sift: Job | None  # the photo's SIFT, found beside the network (refine=features)
+    sift_job: Job | None  # the photo's SIFT, found beside the network (refine=features)
     t1: float = 0.0  # perf_counter before the network, after it, after the dense PnP
     t2: float = 0.0
     t3: float = 0.0

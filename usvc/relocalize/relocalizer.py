@@ -218,7 +218,8 @@ class Relocalizer:
                                 rejected=q.no_focal, warnings=q.warnings, pose_found=False)
         self._learned_pose(q)
         # the photo's features, and (on the worker, while the guided passes run) their matches to every landmark
-        found = self.features.gather(q.sift, q.intrinsics) if self.features and q.sift else None
+        found = self.features.gather(q.sift_job, q.intrinsics) \
+            if self.features is not None and q.sift_job is not None else None
         # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
         # before the features have had their say; the checks below judge the final answer with the
         # evidence that produced it.

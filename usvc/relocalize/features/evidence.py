@@ -26,7 +26,8 @@ class QueryEvidence:
     """`camera` is the query's at the feature image's size (an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix); `use_global` False (prior=none)
     leaves the global matches out of `unguided`; `global_pairs` gives those matches when they are
-    being found already (on the worker thread: `usvc.relocalize.query_cores.Job`); SIFT + PnP's pairs are verified on `opts.threads`."""
+    being found already (on the worker thread: `usvc.relocalize.query_cores.Job`); SIFT + PnP's
+    pairs are verified on `opts.threads`."""
 
     def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[ByteRows] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,

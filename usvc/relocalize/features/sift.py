@@ -13,7 +13,8 @@ sees the grey its mapping-side twin saw: COLMAP's the grey COLMAP's image reader
 (`usvc.core.sift_grey`: the sfm stage's SIFT reads the photos through it), OpenCV's the luma
 (as `sfm.extractor=opencv` converts the photos).
 Keypoints use COLMAP's pixel convention (the top-left pixel's centre at (0.5, 0.5)), like every 2D
-point in usvc.
+point in usvc. A query's features are found on the photo resized to the mapping images' short side
+when larger (`find_features`), on the worker thread while the network runs (`feature_job`).
 """
 
 from __future__ import annotations
