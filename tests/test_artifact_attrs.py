@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, MappingKeypoints
-from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.buffer.buffer_file import TrainingBuffer, write_buffer
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import write_scene_h5
 from usvc.keypoints.keypoints_file import Keypoints, write_keypoints
-from usvc.relocalize.relocalize_scene import write_results
+from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks, MappingKeypoints
+from usvc.landmarks.landmarks_file import write_landmarks
 from usvc.relocalize.pose_estimate import PoseEstimate
+from usvc.relocalize.run import write_results
 from usvc.render.views_file import NovelView
 from usvc.render.views_file import write_rendered_views
 from usvc.sfm.tracks_file import Tracks, write_tracks

@@ -1,4 +1,4 @@
-"""The per-image matching's arithmetic (`usvc/relocalize/byte_products.py`): exact integer dots of
+"""The per-image matching's arithmetic (`usvc/relocalize/features/byte_products.py`): exact integer dots of
 COLMAP's uint8 descriptors on int8 units or as float32 products, and COLMAP's matcher rules on them
 (`verified_matching.mutual_ratio_matches`)."""
 
@@ -9,9 +9,9 @@ import pytest
 from test_fallback import CAM, N_POINTS, R_TRUE, T_TRUE, scene
 
 from usvc.landmarks.landmark_table import encode_descriptors, unit_descriptors
-from usvc.relocalize import byte_products
-from usvc.relocalize.byte_products import ByteRows, dots, int8_products
-from usvc.relocalize.verified_matching import (
+from usvc.relocalize.features import byte_products
+from usvc.relocalize.features.byte_products import ByteRows, dots, int8_products
+from usvc.relocalize.features.verified_matching import (
     MAX_DISTANCE,
     MAX_RATIO,
     mutual_ratio_matches,
@@ -71,7 +71,7 @@ def test_mutual_test_is_numpys_first_row_of_each_column_maximum_with_every_kind_
     small integer dots full of ties (rows whose own nearest column ties with another, rows that
     failed the ratio test reaching a column's maximum, candidates sharing a column), for both
     dtypes the products give."""
-    from usvc.relocalize.verified_matching import _mutual
+    from usvc.relocalize.features.verified_matching import _mutual
     rng = np.random.default_rng(5)
     for trial in range(300):
         shape = (int(rng.integers(1, 12)), int(rng.integers(1, 9)))

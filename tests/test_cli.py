@@ -385,7 +385,7 @@ def test_photos_are_decoded_one_ahead_in_order(monkeypatch, tmp_path: Path) -> N
     import threading
 
     import usvc.core.images as images
-    from usvc.relocalize.photo_prefetch import decoded_ahead
+    from usvc.cli.photo_prefetch import decoded_ahead
     from usvc.core.errors import UsvcError
 
     started: list[str] = []

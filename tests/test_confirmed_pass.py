@@ -16,13 +16,13 @@ from scipy.spatial.transform import Rotation
 from test_fallback import MAPPING, N_POINTS, WRONG, _map, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors, photo
 
-from usvc.relocalize import last_pass as last_pass_module
-from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX, FeatureResult, accept, feature_options
-from usvc.relocalize.last_pass import confirmations, confirmed_pass, keypoint_sites
+from usvc.relocalize.features import last_pass as last_pass_module
+from usvc.relocalize.features.last_pass import confirmations, confirmed_pass, keypoint_sites
+from usvc.relocalize.features.passes import VERIFIED_MAX_ERROR_PX, FeatureResult, accept, feature_options
+from usvc.relocalize.features.verified_matching import observation_descriptors
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.pnp import PnPResult
 from usvc.relocalize.relocalizer import Relocalizer
-from usvc.relocalize.verified_matching import observation_descriptors
 
 pytestmark = pytest.mark.precision  # the Relocalizer runs the network at `auto`: CI runs these under both
 

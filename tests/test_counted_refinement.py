@@ -16,9 +16,9 @@ from test_refinement import CAM, R_TRUE, T_TRUE, errors
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import unit_descriptors
 from usvc.relocalize.counted_refinement import _cost, _residuals, distinct_pairs, refine_weighted
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import pose_checked_matches, verified_matches
 from usvc.relocalize.pnp import project_points, refine_on_inliers
-from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import pose_checked_matches, verified_matches
 
 R_START = Rotation.from_rotvec([0.0, 0.004, 0.002]).as_matrix() @ R_TRUE  # ~0.26 deg off
 T_START = T_TRUE + np.array([0.003, -0.002, 0.004])

@@ -18,7 +18,7 @@ import yaml
 
 from usvc.buffer.options import BufferOptions
 from usvc.core.precision import PRECISIONS
-from usvc.relocalize import query_features
+from usvc.relocalize.features import sift as sift_module
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.train.options import TrainOptions
 
@@ -216,7 +216,7 @@ def query_sift_problems(text: str) -> list[str]:
     COLMAP's on a CPU (it gives OpenCV's there, and COLMAP's only on a GPU that pycolmap can use),
     unless the sentence is about prior=none or features_extractor=colmap."""
     default = RelocalizeOptions().features_extractor
-    on_cpu = query_features.choose_sift(default, "cpu", RelocalizeOptions().prior).kind
+    on_cpu = sift_module.choose_sift(default, "cpu", RelocalizeOptions().prior).kind
     if on_cpu == "colmap":
         return []
     return [f"{c.strip()!r}: the default query SIFT on the host is {on_cpu}'s" for c in clauses(text)
@@ -337,10 +337,10 @@ def test_a_query_sift_on_the_host_named_colmaps_is_found():
 def test_the_default_extractor_is_opencvs_without_a_gpu_sift(monkeypatch):
     """What query_sift_problems relies on: `auto` takes OpenCV's SIFT on a CPU, and on a GPU where
     pycolmap has no CUDA (PyPI's); COLMAP's with prior=none."""
-    assert query_features.choose_sift("auto", "cpu").kind == "opencv"
-    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: False)
-    assert query_features.choose_sift("auto", "cuda").kind == "opencv"
-    assert query_features.choose_sift("auto", "cpu", prior="none").kind == "colmap"
+    assert sift_module.choose_sift("auto", "cpu").kind == "opencv"
+    monkeypatch.setattr(sift_module, "pycolmap_has_cuda", lambda: False)
+    assert sift_module.choose_sift("auto", "cuda").kind == "opencv"
+    assert sift_module.choose_sift("auto", "cpu", prior="none").kind == "colmap"
 
 
 def test_a_wrong_default_model_or_method_is_found():

@@ -11,11 +11,11 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from usvc.cli.exports import FORMATS, Posed, export, nerfstudio_intrinsics
 from usvc.core.errors import UsvcError
 from usvc.core.poses_file import read_poses_txt
 from usvc.core.scene import Camera
 from usvc.prepare.importers import load_scene
-from usvc.relocalize.exports import FORMATS, Posed, export, nerfstudio_intrinsics
 
 W, H = 160, 120
 CAMERAS = [

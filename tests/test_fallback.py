@@ -26,18 +26,20 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
-from usvc.relocalize import feature_answer as feature_answer_module
-from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize import query_evidence as query_evidence_module
+from usvc.relocalize import query_cores
 from usvc.relocalize import relocalizer as relocalizer_module
-from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
-from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
-from usvc.relocalize.verified_matching import (
+from usvc.relocalize.features import evidence as evidence_module
+from usvc.relocalize.features import path as path_module
+from usvc.relocalize.features import sift as sift_module
+from usvc.relocalize.features.path import FeaturePath
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import (
     MIN_PAIR_INLIERS,
     pose_checked_matches,
     verified_matches,
 )
+from usvc.relocalize.pnp import project_points, refine_on_inliers, solve_pnp
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.sfm.tracks_file import Tracks
 
 pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both
@@ -110,7 +112,7 @@ def _map(tmp_path: Path, landmarks: Landmarks, monkeypatch: pytest.MonkeyPatch, 
     coords = coordinate_map(learned, learned, noise=0.0) if learned is not None else \
         np.random.default_rng(5).normal(0.0, 2.0, (300, 3)) + [0.0, 0.0, 3.0]
     monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: coords.reshape(15, 20, 3))
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: feats)
     path = make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32), META)
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
     return path
@@ -226,12 +228,12 @@ def test_no_check_on_the_learned_pose_refuses_before_the_features_run(tmp_path: 
     path = _map(tmp_path, landmarks, monkeypatch, feats)
     reloc = Relocalizer(path, tmp_path / "encoder.pt")
     calls: list[str] = []
-    real_features, real_focal = Relocalizer._features, Relocalizer._focal_disagreement
-    monkeypatch.setattr(Relocalizer, "_features", lambda *a, **k: calls.append("features") or real_features(*a, **k))
+    real_features, real_focal = FeaturePath.answer, Relocalizer._focal_disagreement
+    monkeypatch.setattr(FeaturePath, "answer", lambda *a, **k: calls.append("features") or real_features(*a, **k))
     monkeypatch.setattr(Relocalizer, "_focal_disagreement",
                         lambda *a, **k: calls.append("map focal") or real_focal(*a, **k))
     real_stretch = relocalizer_module.stretch_verdict
-    for module in (relocalizer_module, feature_answer_module):  # on the map's coordinates; on the features' P4Pf
+    for module in (relocalizer_module, path_module):  # on the map's coordinates; on the features' P4Pf
         monkeypatch.setattr(module, "stretch_verdict", lambda *a, **k: calls.append("stretch") or real_stretch(*a, **k))
     for intrinsics in (CAM, None):
         calls.clear()
@@ -261,7 +263,7 @@ def test_prior_none_needs_landmarks_with_observations(tmp_path: Path, monkeypatc
 
 
 def test_the_fallback_registers_with_the_baselines_threshold():
-    from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX
+    from usvc.relocalize.features.passes import VERIFIED_MAX_ERROR_PX
     from usvc.sfm.posing import QUERY_MAX_ERROR_PX
 
     assert VERIFIED_MAX_ERROR_PX == QUERY_MAX_ERROR_PX
@@ -274,7 +276,7 @@ def test_without_intrinsics_a_feature_pose_needs_a_focal_length_with_evidence(tm
     from test_refinement import PIXELS
 
     landmarks, feats = scene()
-    monkeypatch.setattr(query_evidence_module, "estimate_focal_pose", lambda *a, **k: None)  # every P4Pf of the features
+    monkeypatch.setattr(evidence_module, "estimate_focal_pose", lambda *a, **k: None)  # every P4Pf of the features
     right = backproject(PIXELS, R_TRUE, T_TRUE)
     path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
     monkeypatch.setattr(Relocalizer, "scene_coordinates", lambda self, g: right.reshape(15, 20, 3))
@@ -297,7 +299,7 @@ def test_where_only_the_map_could_tell_the_focal_length_it_judges_if_it_can(tmp_
     landmarks, feats = scene()
     path = _map(tmp_path, landmarks, monkeypatch, feats, learned=(R_TRUE, T_TRUE))
     asked: list[bool] = []  # verified=... of each call: which evidence was asked for the focal length
-    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict", lambda *a, verified=False, **k: asked.append(verified)
+    monkeypatch.setattr(FeaturePath, "focal_verdict", lambda *a, verified=False, **k: asked.append(verified)
                         or relocalizer_module.FOCAL_UNOBSERVABLE)
     monkeypatch.setattr(Relocalizer, "_focal_disagreement",
                         lambda *a, **k: "the image implies a focal length 2.00x the given one")
@@ -323,7 +325,7 @@ def test_the_maps_focal_estimate_is_found_only_where_its_verdict_is_asked_for(tm
     calls: list[int] = []
     real = relocalizer_module.estimate_focal
     monkeypatch.setattr(relocalizer_module, "estimate_focal", lambda *a, **k: calls.append(len(a[0])) or real(*a, **k))
-    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 2)  # side work on the worker
+    monkeypatch.setattr(query_cores.torch, "get_num_threads", lambda: 2)  # side work on the worker
     reloc = Relocalizer(path, tmp_path / "encoder.pt")
     reloc.map_judges_focal = True
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
@@ -332,7 +334,7 @@ def test_the_maps_focal_estimate_is_found_only_where_its_verdict_is_asked_for(tm
     assert right.success and right.refine_path == "guided" and not right.warnings, right.rejected
     assert not wrong.success and wrong.rejected.startswith("the matched features imply a focal length 0.5")
     assert calls == []
-    monkeypatch.setattr(Relocalizer, "_feature_focal_verdict",
+    monkeypatch.setattr(FeaturePath, "focal_verdict",
                         lambda *a, **k: relocalizer_module.FOCAL_UNOBSERVABLE)
     right = reloc.localize(photo(), CAM)
     assert right.success and len(calls) == 1, right.rejected

@@ -14,9 +14,10 @@ import pytest
 from test_feature_refinement import synthetic_relocalizer
 from test_refinement import CAM, make_map, photo, synthetic_query  # noqa: F401
 
-from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize.feature_job import feature_job, find_features, global_match_job
-from usvc.relocalize.feature_refinement import global_matches
+from usvc.relocalize import query_cores
+from usvc.relocalize.features import sift as sift_module
+from usvc.relocalize.features.matching import global_match_job, global_matches
+from usvc.relocalize.features.sift import feature_job, find_features
 
 
 def textured(seed: int = 0, shape: tuple[int, int] = (360, 480)) -> np.ndarray:
@@ -58,16 +59,16 @@ def test_a_job_runs_on_the_worker_thread_only_in_the_background(monkeypatch):
         where.append(threading.current_thread().name)
         return find_features(*args)
 
-    monkeypatch.setattr(feature_job_module, "find_features", record)
+    monkeypatch.setattr(sift_module, "find_features", record)
     gray = textured(1, (120, 160))
     feature_job(gray, 240, 500, "opencv", background=True).result()
     lazy = feature_job(gray, 240, 500, "opencv", background=False)
     assert len(where) == 1 and where[0].startswith("usvc-features")
     lazy.result()
     assert where[1] == threading.current_thread().name
-    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 1)
+    monkeypatch.setattr(query_cores.torch, "get_num_threads", lambda: 1)
     assert not feature_job(gray, 240, 500, "opencv").background  # one thread: in place
-    monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(query_cores.torch, "get_num_threads", lambda: 2)
     assert feature_job(gray, 240, 500, "opencv").background
 
 
@@ -76,13 +77,13 @@ def test_the_relocalizer_answers_the_same_with_its_features_found_beside_the_net
     reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
     answers = {}
-    threads = feature_job_module.torch.get_num_threads()
+    threads = query_cores.torch.get_num_threads()
     try:
         for background in (False, True):
-            monkeypatch.setattr(feature_job_module.torch, "get_num_threads", lambda b=background: 2 if b else 1)
+            monkeypatch.setattr(query_cores.torch, "get_num_threads", lambda b=background: 2 if b else 1)
             answers[background] = [reloc.localize(photo(), intr) for intr in (CAM, None, (2 * fx, 2 * fy, cx, cy))]
     finally:  # the split of a query's threads put back what the patched count said
-        feature_job_module.torch.set_num_threads(threads)
+        query_cores.torch.set_num_threads(threads)
     for a, b in zip(answers[False], answers[True]):
         assert a.success == b.success and a.rejected == b.rejected and a.refine_path == b.refine_path
         assert np.array_equal(a.R, b.R, equal_nan=True) and np.array_equal(a.t, b.t, equal_nan=True)

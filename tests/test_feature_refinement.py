@@ -24,17 +24,12 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import landmarks_disagree, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
-from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize.byte_products import ByteRows, int8_products, scaled
-from usvc.relocalize.feature_refinement import (
-    FeatureMatchOptions,
-    feature_options,
-    global_matches,
-    guided_matches,
-    refine_by_features,
-    visible_landmarks,
-)
-from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.features import sift as sift_module
+from usvc.relocalize.features.byte_products import ByteRows, int8_products, scaled
+from usvc.relocalize.features.matching import global_matches, guided_matches
+from usvc.relocalize.features.passes import FeatureMatchOptions, feature_options, visible_landmarks
+from usvc.relocalize.features.path import refine_by_features
+from usvc.relocalize.features.sift import QueryFeatures
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.sfm.tracks_file import Tracks
 
@@ -96,7 +91,7 @@ def test_a_prior_outside_the_radius_falls_back_to_matching_every_landmark():
 
 def mislead_the_guided_passes(monkeypatch) -> None:
     """From now on the guided passes settle on a pose 3 deg off, with a fifth of the support."""
-    from usvc.relocalize import feature_refinement as fr
+    from usvc.relocalize.features import path as fr  # where refine_by_features calls the guided passes
 
     real = fr.from_prior
 
@@ -183,18 +178,18 @@ CUDA_MARKS = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available()
 
 # tile_cost 0: never tiles; 10**9: tiles wherever the CPU matches (device None). dense_share 0: the
 # pairs' own descriptors; 10**9: one product on the device. device: the products with numpy (None,
-# the CPU default) or torch on that device (`usvc.relocalize.device_matching`)
+# the CPU default) or torch on that device (`usvc.relocalize.features.device_matching`)
 @pytest.mark.parametrize("tile_cost,dense_share,device", [(0, 0, None), (10**9, 0, None), (0, 10**9, "cpu"),
                                                            pytest.param(0, 10**9, "cuda", marks=CUDA_MARKS)])
 def test_guided_and_global_matching_are_their_definitions(tile_cost: float, dense_share: int, device: str | None,
                                                           monkeypatch):
-    from usvc.relocalize import device_matching, feature_refinement, tiled_matching
-    monkeypatch.setattr(feature_refinement, "_TILE_PAIR_COST", tile_cost)
-    monkeypatch.setattr(feature_refinement, "_DENSE_PAIR_SHARE", dense_share)
+    from usvc.relocalize.features import device_matching, matching, tiled_matching
+    monkeypatch.setattr(matching, "_TILE_PAIR_COST", tile_cost)
+    monkeypatch.setattr(matching, "_DENSE_PAIR_SHARE", dense_share)
     monkeypatch.setattr(tiled_matching, "MAX_TILES", 12)  # tiles wider than the smaller radii
-    monkeypatch.setattr(feature_refinement, "_CHUNK", 96)  # several blocks of landmarks
+    monkeypatch.setattr(matching, "_CHUNK", 96)  # several blocks of landmarks
     monkeypatch.setattr(device_matching, "_CHUNK_ENTRIES", 96 * 700)  # the same on a device
-    monkeypatch.setattr(feature_refinement, "_PAIRS", 500)  # several blocks of pairs
+    monkeypatch.setattr(matching, "_PAIRS", 500)  # several blocks of pairs
     landmarks, feats = scene(3)
     desc = scaled(landmarks.descriptor)
     R, t = prior(2.0, 0.02)  # off the true pose: landmarks project a few px from their keypoints
@@ -303,7 +298,7 @@ def test_relocalizer_refines_by_features_and_reports_the_path(tmp_path: Path, sy
     path = make_map(tmp_path / "map" / "map.pt", landmarks.xyz[:10].astype(np.float32),
                     {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / "landmarks" / LANDMARKS_H5, landmarks)  # the pipeline's layout
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: feats)
     reloc = Relocalizer(path, tmp_path / "map" / "encoder.pt")
     assert reloc.landmarks_path == tmp_path / "landmarks" / LANDMARKS_H5
     est = reloc.localize(photo(), CAM)
@@ -323,7 +318,7 @@ def test_features_from_another_place_fall_back_to_the_dense_answer(tmp_path: Pat
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: other)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: other)
     est = Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt").localize(photo(), CAM)
     assert est.refine_path == "dense" and est.feature_inliers == 0
     assert est.to_json()["refinement"]["learned_pose_kept"] is True
@@ -361,7 +356,7 @@ def synthetic_relocalizer(tmp_path: Path, monkeypatch) -> tuple[Relocalizer, Que
     make_map(tmp_path / "map.pt", landmarks.xyz[:10].astype(np.float32),
              {"short_side": 120, "median_depth": 2.0, "scene": "synthetic"})
     write_landmarks(tmp_path / LANDMARKS_H5, landmarks)
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: feats)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: feats)
     return Relocalizer(tmp_path / "map.pt", tmp_path / "encoder.pt"), feats
 
 
@@ -386,14 +381,14 @@ def test_without_intrinsics_the_features_estimate_the_focal_and_refuse_a_stretch
     assert abs(est.camera.params[0] / CAM.focal[0] - 1.0) < 0.25  # the features' focal, not the 1.2 x side prior
     cx = CAM.principal_point[0]
     wide = QueryFeatures(np.c_[cx + 1.5 * (feats.uv[:, 0] - cx), feats.uv[:, 1]], feats.descriptor)
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: wide)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: wide)
     est = reloc.localize(photo(), None)
     assert not est.success and "looks stretched" in est.rejected and np.isnan(est.R).all()
 
 
 def test_descriptor_products_go_to_the_device_only_off_the_cpu():
     """On the CPU the relocalizer keeps numpy's products (the measured answers); on a GPU, torch's there."""
-    from usvc.relocalize.relocalizer import matching_device
+    from usvc.relocalize.features.device_matching import matching_device
 
     assert matching_device("cpu") is None
     assert matching_device("cuda") == "cuda" and matching_device("cuda:1") == "cuda:1"
@@ -403,8 +398,8 @@ def test_a_relocalizer_on_a_device_matches_there_and_answers_as_on_the_cpu(tmp_p
                                                                             monkeypatch):
     """The device path of the relocalizer (forced here onto torch's CPU: the same code as on a GPU)
     computes its products through `device_matching` and gives the CPU's answers."""
-    from usvc.relocalize import device_matching, feature_answer, feature_refinement
-    from usvc.relocalize import relocalizer as relocalizer_module
+    from usvc.relocalize.features import device_matching, matching
+    from usvc.relocalize.features import path as path_module
 
     reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     (fx, fy), (cx, cy) = CAM.focal, CAM.principal_point
@@ -413,10 +408,10 @@ def test_a_relocalizer_on_a_device_matches_there_and_answers_as_on_the_cpu(tmp_p
     calls = []
     for name in ("masked_row_best_two", "best_two_and_column_max"):
         real = getattr(device_matching, name)
-        monkeypatch.setattr(feature_refinement, name,
+        monkeypatch.setattr(matching, name,
                             lambda *a, _real=real, _name=name: calls.append(_name) or _real(*a))
-    for module in (relocalizer_module, feature_answer):  # where the matching against every landmark, and the
-        monkeypatch.setattr(module, "matching_device", lambda device: "cpu")  # guided passes, are placed
+    # where the matching against every landmark, and the guided passes, are placed
+    monkeypatch.setattr(path_module, "matching_device", lambda device: "cpu")
     on_device = [reloc.localize(photo(), q) for q in queries]
     assert {"masked_row_best_two", "best_two_and_column_max"} <= set(calls)
     for a, b in zip(on_cpu, on_device):

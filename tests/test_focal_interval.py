@@ -12,8 +12,7 @@ import pytest
 
 from usvc.core.absolute_pose import estimate_focal_pose, focal_log_std
 from usvc.core.scene import Camera
-from usvc.relocalize.focal_verdicts import FOCAL_UNOBSERVABLE, FocalVerdicts
-from usvc.relocalize.options import RelocalizeOptions
+from usvc.relocalize.features.path import FOCAL_UNOBSERVABLE, feature_focal_verdict
 
 W, H, F = 640, 480, 500.0
 
@@ -53,9 +52,7 @@ def test_a_flat_view_leaves_the_focal_length_free_and_a_deep_one_pins_it():
     assert found is None or focal_log_std(found, uv, xyz) > 0.1
 
 
-class _Verdicts(FocalVerdicts):
-    def __init__(self) -> None:
-        self.options, self.seed, self.landmarks = RelocalizeOptions(focal_tolerance=0.25), 0, object()
+TOLERANCE = 0.25  # relocalize.focal_tolerance
 
 
 def _evidence(uv: np.ndarray, xyz: np.ndarray, focal: float) -> SimpleNamespace:
@@ -70,11 +67,10 @@ def test_the_features_vouch_for_a_right_focal_length_and_refuse_a_wrong_one(dept
     """A view deep enough to pin the focal length (0.08: a near-flat one, which a test of how many
     inliers a 25 % wrong focal length keeps at the PnP threshold could not tell from a flat one)."""
     uv, xyz = view(depth_spread, 0.5, 1)
-    verdicts = _Verdicts()
-    assert verdicts._feature_focal_verdict(_evidence(uv, xyz, F)) == ""
-    assert verdicts._feature_focal_verdict(_evidence(uv, xyz, 1.1 * F)) == ""  # within the tolerance
+    assert feature_focal_verdict(_evidence(uv, xyz, F), TOLERANCE) == ""
+    assert feature_focal_verdict(_evidence(uv, xyz, 1.1 * F), TOLERANCE) == ""  # within the tolerance
     for factor in (2.0, 0.5, 1.4):
-        why = verdicts._feature_focal_verdict(_evidence(uv, xyz, factor * F))
+        why = feature_focal_verdict(_evidence(uv, xyz, factor * F), TOLERANCE)
         found = re.match(r"the matched features imply a focal length (\d+\.\d+)x the given one", why)
         assert found and abs(np.log(float(found.group(1)) * factor)) < 0.03, why
 
@@ -83,6 +79,5 @@ def test_the_features_defer_where_the_view_allows_the_focal_length_and_one_far_o
     """A near-flat view with coarse matches allows focal lengths well beyond the tolerance either
     way: the features neither refuse the given one nor vouch for it; the map, or nothing, decides."""
     uv, xyz = view(0.005, 3.0, 2)
-    verdicts = _Verdicts()
     for factor in (1.0, 2.0, 0.5):
-        assert verdicts._feature_focal_verdict(_evidence(uv, xyz, factor * F)) == FOCAL_UNOBSERVABLE
+        assert feature_focal_verdict(_evidence(uv, xyz, factor * F), TOLERANCE) == FOCAL_UNOBSERVABLE

@@ -1,5 +1,5 @@
 """The agreement check of refinement by features: a guided answer against the matches to every
-landmark (`usvc.relocalize.query_evidence.QueryEvidence.agreement`, `refine_by_features`'s
+landmark (`usvc.relocalize.features.evidence.QueryEvidence.agreement`, `refine_by_features`'s
 `agreement`)."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from __future__ import annotations
 from test_feature_refinement import N_POINTS, OPTS, mislead_the_guided_passes, prior, scene
 from test_refinement import CAM, R_TRUE, T_TRUE, errors
 
-from usvc.relocalize.byte_products import scaled
-from usvc.relocalize.feature_refinement import refine_by_features
+from usvc.relocalize.features.byte_products import scaled
+from usvc.relocalize.features.path import refine_by_features
 
 
 def test_a_guided_answer_that_the_matches_to_every_landmark_disagree_with_meets_them(monkeypatch):
@@ -17,8 +17,8 @@ def test_a_guided_answer_that_the_matches_to_every_landmark_disagree_with_meets_
     the answer explains, against how many their own P4Pf pose explains) catches it: below
     AGREEMENT, the global hypothesis competes and the better-supported pose wins. A right guided
     answer passes the check alone, and its record says what the check found."""
-    from usvc.relocalize import feature_refinement as fr
-    from usvc.relocalize.query_evidence import QueryEvidence
+    from usvc.relocalize.features import path as fr
+    from usvc.relocalize.features.evidence import QueryEvidence
 
     landmarks, feats = scene()
     desc = scaled(landmarks.descriptor)

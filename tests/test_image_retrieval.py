@@ -1,4 +1,4 @@
-"""Retrieval of the mapping photos most like a query (`usvc.relocalize.image_retrieval`): the
+"""Retrieval of the mapping photos most like a query (`usvc.relocalize.features.retrieval`): the
 landmarks' visual words, the query's matches to the landmarks of the retrieved photos only, and
 SIFT + PnP's fallback on those photos only; a map with no more photos than asked for is searched
 whole, as before."""
@@ -17,12 +17,12 @@ from usvc.core.errors import UsvcError
 from usvc.landmarks.build import retrieval_words
 from usvc.landmarks.landmark_table import Landmarks, image_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import read_landmarks, write_landmarks
-from usvc.relocalize.byte_products import ByteRows, scaled
-from usvc.relocalize.feature_refinement import global_matches
-from usvc.relocalize.image_retrieval import ImageRetrieval
-from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.features.byte_products import ByteRows, scaled
+from usvc.relocalize.features.matching import global_matches
+from usvc.relocalize.features.retrieval import ImageRetrieval
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import verified_matches
 from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
-from usvc.relocalize.verified_matching import verified_matches
 
 
 def test_the_landmarks_carry_their_words_and_read_them_back(tmp_path: Path):

@@ -22,15 +22,15 @@ from PIL import Image
 from test_relocalizer import SHORT_SIDE, exact_coordinates, make_map, photo
 
 from usvc.cli import main
+from usvc.cli.exports import FORMATS
 from usvc.core.errors import UsvcError
 from usvc.core.scene import Camera
 from usvc.model.encoder import Encoder
 from usvc.model.head import Head, Regressor
 from usvc.model.map_file import save_map
-from usvc.relocalize.exports import FORMATS
+from usvc.relocalize.camera_checks import implausible_focal, intrinsics_warnings, stretch_verdict
 from usvc.relocalize.options import RelocalizeOptions
 from usvc.relocalize.query_input import camera_from_intrinsics
-from usvc.relocalize.camera_checks import implausible_focal, intrinsics_warnings, stretch_verdict
 from usvc.relocalize.relocalizer import Relocalizer
 
 pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both

@@ -19,16 +19,16 @@ from usvc.landmarks.build import build_landmarks
 from usvc.landmarks.landmark_table import Landmarks, MappingKeypoints, encode_descriptors, unit_descriptors
 from usvc.landmarks.landmarks_file import observation_keypoints, read_landmarks, write_landmarks
 from usvc.landmarks.options import LandmarksOptions
-from usvc.relocalize.byte_products import ByteRows
-from usvc.relocalize.pnp import project_points
-from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
-from usvc.relocalize.verified_matching import (
+from usvc.relocalize.features.byte_products import ByteRows
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import (
     HeldKeypointDescriptors,
     cross_checked_matches,
     mutual_ratio_matches,
     verified_matches,
 )
+from usvc.relocalize.pnp import project_points
+from usvc.relocalize.relocalizer import RelocalizeOptions, Relocalizer
 from usvc.sfm.tracks_file import Tracks, read_tracks, write_tracks
 
 EXTRA = 60  # keypoints per mapping image that observe no point
@@ -233,7 +233,7 @@ def test_a_mapping_keypoint_like_an_observation_spoils_its_match_as_it_does_sift
 
 
 def test_every_keypoint_is_cross_checked_and_observations_are_not(monkeypatch):
-    from usvc.relocalize import verified_matching
+    from usvc.relocalize.features import verified_matching
 
     _, landmarks, feats = scene()
     calls = []

@@ -26,7 +26,7 @@ def test_the_wheel_ships_the_library_not_the_stage_scripts(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names if not n.startswith("usvc-")}
     assert tops == {"usvc"}, tops
-    for needed in ("usvc/cli.py", "usvc/relocalize/relocalizer.py", "usvc/train/options.py"):
+    for needed in ("usvc/cli/__init__.py", "usvc/relocalize/relocalizer.py", "usvc/train/options.py"):
         assert needed in names
     assert any(n.startswith("usvc/weights/") and n.endswith(".pt") for n in names)
     # every package of the source tree made it into the wheel

@@ -20,8 +20,8 @@ from test_feature_refinement import synthetic_relocalizer
 from test_refinement import CAM, photo, synthetic_query  # noqa: F401
 
 from usvc.core.errors import UsvcError
-from usvc.relocalize.feature_job import Job, inline_jobs
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
+from usvc.relocalize.query_cores import Job, inline_jobs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -164,7 +164,7 @@ def test_query_workers_auto_is_one_photo_per_thread():
 def test_the_relocalize_stage_localizes_its_frames_in_order_with_workers(tmp_path: Path, synthetic_query,
                                                                          monkeypatch):
     from usvc.core.scene import Frame
-    from usvc.relocalize.relocalize_scene import relocalize_frames
+    from usvc.relocalize.run import relocalize_frames
 
     reloc, _ = synthetic_relocalizer(tmp_path, monkeypatch)
     image = tmp_path / "query.png"

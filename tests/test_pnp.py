@@ -169,7 +169,7 @@ def test_poselib_projects_every_camera_model_as_colmap_does(model):
 
 
 def test_feature_pnps_use_the_lower_trial_floor(monkeypatch):
-    from usvc.relocalize import feature_refinement as F
+    from usvc.relocalize.features import passes as F
 
     seen = {}
 
@@ -189,7 +189,7 @@ def test_feature_pnps_use_the_lower_trial_floor(monkeypatch):
 
 def test_sift_and_pnps_own_evidence_keeps_colmaps_pnp(monkeypatch):
     # the verified path is SIFT + PnP's registration of a query: COLMAP's LO-RANSAC, as the baseline
-    from usvc.relocalize import feature_refinement as F
+    from usvc.relocalize.features import passes as F
 
     seen = []
 

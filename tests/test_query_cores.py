@@ -14,7 +14,7 @@ from test_feature_refinement import synthetic_relocalizer
 from test_refinement import CAM, H_CELLS, R_TRUE, SMALL_BIAS, T_TRUE, W_CELLS, coordinate_map, photo
 from threadpoolctl import threadpool_info
 
-from usvc.relocalize import feature_job as feature_job_module
+from usvc.relocalize.features import sift as sift_module
 from usvc.relocalize.query_cores import side_libraries, split
 from usvc.relocalize.relocalizer import Relocalizer
 
@@ -58,7 +58,7 @@ def test_a_query_runs_each_side_on_its_own_share_and_leaves_the_pools_as_they_we
 
     monkeypatch.setattr(reloc.regressor, "forward", network)
     monkeypatch.setattr(Relocalizer, "scene_coordinates", synthetic)
-    monkeypatch.setattr(feature_job_module, "extract_sift", sift)
+    monkeypatch.setattr(sift_module, "extract_sift", sift)
     torch.set_num_threads(2)
     cv2.setNumThreads(3)
     blas = _blas_threads()

@@ -1,4 +1,4 @@
-"""Where a query's SIFT runs (`relocalize.features_extractor`, usvc/relocalize/query_features.py):
+"""Where a query's SIFT runs (`relocalize.features_extractor`, usvc/relocalize/features/sift.py):
 `auto` is COLMAP's SIFT on the relocalizer's GPU where pycolmap was built with CUDA, OpenCV's on
 the CPU everywhere else; COLMAP's GPU extractor is asked for with that GPU's index and an image
 bound that holds the photo. The GPU itself is exercised by the `cuda` test at the end."""
@@ -15,10 +15,9 @@ import pytest
 from test_feature_refinement import synthetic_relocalizer
 from test_refinement import CAM, photo, synthetic_query  # noqa: F401
 
-from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize import query_features
+from usvc.relocalize.features import sift as sift_module
+from usvc.relocalize.features.sift import SiftChoice, choose_sift, extract_sift
 from usvc.relocalize.options import RelocalizeOptions
-from usvc.relocalize.query_features import SiftChoice, choose_sift, extract_sift
 
 
 def blocks(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
@@ -33,14 +32,14 @@ def blocks(shape: tuple[int, int], seed: int = 0) -> np.ndarray:
 def test_on_the_cpu_the_sift_is_where_it_always_was(setting: str, cuda: bool, monkeypatch):
     """On a CPU relocalizer `auto` is OpenCV's SIFT, as `opencv`; `colmap` is COLMAP's on the CPU,
     whatever pycolmap could do on a GPU."""
-    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: cuda)
+    monkeypatch.setattr(sift_module, "pycolmap_has_cuda", lambda: cuda)
     expected = {"auto": SiftChoice("opencv"), "opencv": SiftChoice("opencv"), "colmap": SiftChoice("colmap")}
     assert choose_sift(setting, "cpu") == expected[setting]
 
 
 def test_on_a_gpu_auto_is_colmaps_sift_on_that_gpu_where_pycolmap_has_cuda(monkeypatch):
-    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: True)
-    monkeypatch.setattr(query_features, "_gpu_sift_problem", lambda gpu: "")  # its extractor starts there
+    monkeypatch.setattr(sift_module, "pycolmap_has_cuda", lambda: True)
+    monkeypatch.setattr(sift_module, "_gpu_sift_problem", lambda gpu: "")  # its extractor starts there
     assert choose_sift("auto", "cuda") == SiftChoice("colmap", 0)
     assert choose_sift("auto", "cuda:1") == SiftChoice("colmap", 1)
     assert choose_sift("colmap", "cuda:2") == SiftChoice("colmap", 2)
@@ -49,8 +48,8 @@ def test_on_a_gpu_auto_is_colmaps_sift_on_that_gpu_where_pycolmap_has_cuda(monke
 
 
 def test_on_a_gpu_without_pycolmaps_cuda_the_sift_stays_on_the_cpu_and_says_so(monkeypatch, caplog):
-    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: False)
-    with caplog.at_level(logging.INFO, logger=query_features.__name__):
+    monkeypatch.setattr(sift_module, "pycolmap_has_cuda", lambda: False)
+    with caplog.at_level(logging.INFO, logger=sift_module.__name__):
         assert choose_sift("auto", "cuda") == SiftChoice("opencv")
         assert choose_sift("colmap", "cuda:0") == SiftChoice("colmap")
     assert "no CUDA" in caplog.text and "pycolmap-cuda12" in caplog.text
@@ -59,9 +58,9 @@ def test_on_a_gpu_without_pycolmaps_cuda_the_sift_stays_on_the_cpu_and_says_so(m
 def test_a_gpu_where_colmaps_sift_does_not_start_leaves_the_sift_on_the_cpu(monkeypatch, caplog):
     """pycolmap-cuda12 on a machine whose GPU SiftGPU cannot use (it then falls back to OpenGL and
     fails): one warning naming why, and the CPU's SIFT, not a failure inside every query."""
-    monkeypatch.setattr(query_features, "pycolmap_has_cuda", lambda: True)
-    query_features._extractor.cache_clear()
-    query_features._gpu_sift_problem.cache_clear()
+    monkeypatch.setattr(sift_module, "pycolmap_has_cuda", lambda: True)
+    sift_module._extractor.cache_clear()
+    sift_module._gpu_sift_problem.cache_clear()
 
     def create(options, device):
         if device == pycolmap.Device.cuda:
@@ -70,12 +69,12 @@ def test_a_gpu_where_colmaps_sift_does_not_start_leaves_the_sift_on_the_cpu(monk
 
     monkeypatch.setattr(pycolmap.FeatureExtractor, "create", create)
     try:
-        with caplog.at_level(logging.WARNING, logger=query_features.__name__):
+        with caplog.at_level(logging.WARNING, logger=sift_module.__name__):
             assert choose_sift("auto", "cuda:0") == SiftChoice("opencv")
             assert choose_sift("colmap", "cuda:0") == SiftChoice("colmap")
     finally:
-        query_features._extractor.cache_clear()
-        query_features._gpu_sift_problem.cache_clear()
+        sift_module._extractor.cache_clear()
+        sift_module._gpu_sift_problem.cache_clear()
     assert "does not start on cuda:0" in caplog.text and "Must be non NULL" in caplog.text
 
 
@@ -90,22 +89,22 @@ def test_colmaps_gpu_extractor_is_asked_for_on_that_gpu_with_room_for_the_photo(
     """The GPU extractor gets use_gpu, the GPU's index, COLMAP's detector settings and a size bound
     that holds the photo; its features come back as the CPU path's (unit rows, COLMAP pixels)."""
     made = []
-    cpu = query_features._extractor(500)  # COLMAP's CPU extractor stands in for the GPU's
+    cpu = sift_module._extractor(500)  # COLMAP's CPU extractor stands in for the GPU's
 
     def create(options, device):
         made.append((options.use_gpu, options.gpu_index, options.max_image_size, options.sift.first_octave,
                      options.sift.max_num_features, device))
         return cpu
 
-    query_features._extractor.cache_clear()
+    sift_module._extractor.cache_clear()
     monkeypatch.setattr(pycolmap.FeatureExtractor, "create", create)
     try:
         gray = blocks((300, 1100))
         on_gpu = extract_sift(gray, 500, SiftChoice("colmap", 1))
         again = extract_sift(gray, 500, SiftChoice("colmap", 1))  # the extractor is made once
     finally:
-        query_features._extractor.cache_clear()
-    assert made == [(True, "1", 2048, query_features.FIRST_OCTAVE, 500, pycolmap.Device.cuda)]
+        sift_module._extractor.cache_clear()
+    assert made == [(True, "1", 2048, sift_module.FIRST_OCTAVE, 500, pycolmap.Device.cuda)]
     on_cpu = extract_sift(gray, 500, "colmap")
     assert len(on_gpu) > 50 and np.array_equal(on_gpu.uv, on_cpu.uv) and np.array_equal(again.uv, on_cpu.uv)
     assert np.allclose(np.linalg.norm(on_gpu.descriptor, axis=1), 1.0, atol=1e-3)
@@ -123,7 +122,7 @@ def test_the_relocalizer_finds_the_query_features_with_its_choice(tmp_path: Path
         seen.append(extractor)
         return feats
 
-    monkeypatch.setattr(feature_job_module, "extract_sift", sift)
+    monkeypatch.setattr(sift_module, "extract_sift", sift)
     reloc.sift = SiftChoice("colmap", 3)  # as chosen on a GPU machine
     assert reloc.localize(photo(), CAM).success
     assert seen == [SiftChoice("colmap", 3)]
@@ -184,7 +183,7 @@ def test_opencv_sift_gives_the_same_keypoints_in_the_same_order_whatever_its_thr
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not query_features.pycolmap_has_cuda(), reason="pycolmap without CUDA (pycolmap-cuda12)")
+@pytest.mark.skipif(not sift_module.pycolmap_has_cuda(), reason="pycolmap without CUDA (pycolmap-cuda12)")
 def test_colmaps_sift_on_the_gpu_finds_the_cpus_keypoints():
     """On a GPU (pycolmap-cuda12): COLMAP's GPU SIFT finds most of its CPU SIFT's keypoints at the
     same places, with descriptors that match them (SiftGPU is not the same code, so not the same bits)."""

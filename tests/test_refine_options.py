@@ -10,8 +10,8 @@ import re
 import pytest
 
 from usvc.core.errors import UsvcError
+from usvc.relocalize.keypoint_refinement import RefineOptions
 from usvc.relocalize.options import RelocalizeOptions
-from usvc.relocalize.refinement import RefineOptions
 from usvc.relocalize.relocalizer import refine_options
 
 

@@ -24,20 +24,20 @@ from usvc.model.encoder import Encoder, cell_centers
 from usvc.model.errors import ModelError
 from usvc.model.head import Head, Regressor
 from usvc.model.map_file import map_keypoints, read_map_header, save_map
-from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
-from usvc.relocalize.refinement import (
+from usvc.relocalize.keypoint_refinement import (
     RefineResult,
     keypoint_cell_mask,
     pose_change,
     refine_pose,
 )
-from usvc.relocalize.relocalize_scene import write_results
+from usvc.relocalize.pnp import project_points, reprojection_inliers, solve_pnp
 from usvc.relocalize.pose_estimate import PoseEstimate
 from usvc.relocalize.relocalizer import (
     RelocalizeOptions,
     Relocalizer,
     refine_options,
 )
+from usvc.relocalize.run import write_results
 
 CAM = Camera("PINHOLE", 160, 120, (130.0, 125.0, 81.0, 59.0))  # 20x15 cells
 H_CELLS, W_CELLS = 15, 20
@@ -136,7 +136,7 @@ def test_refinement_moves_the_pose_to_the_truth():
 
 
 def test_refinement_respects_max_iterations(monkeypatch):
-    import usvc.relocalize.refinement as refinement
+    import usvc.relocalize.keypoint_refinement as refinement
 
     coords = coordinate_map((R_TRUE, T_TRUE), SMALL_BIAS)
     R0, t0, _ = dense_pose(coords)

@@ -11,7 +11,7 @@ from test_sfm import OPTS, small_mini  # noqa: F401  (the 24-image miniature sce
 from usvc.core import opencv_sift
 from usvc.core.scene_file import IMAGE_DIR, read_scene_h5
 from usvc.landmarks.landmark_table import unit_descriptors
-from usvc.relocalize.query_features import extract_sift
+from usvc.relocalize.features.sift import extract_sift
 from usvc.sfm.opencv_extraction import image_features, write_opencv_features
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.reconstruction import reconstruct, register_images

@@ -15,8 +15,8 @@ from test_refinement import CAM, photo, synthetic_query  # noqa: F401
 
 from usvc.core.sift_grey import colmap_grey
 from usvc.model.preprocess import luma01
-from usvc.relocalize import feature_job as feature_job_module
-from usvc.relocalize.query_features import SiftChoice, choose_sift
+from usvc.relocalize.features import sift as sift_module
+from usvc.relocalize.features.sift import SiftChoice, choose_sift
 
 
 def every_colour() -> np.ndarray:
@@ -66,7 +66,7 @@ def test_the_relocalizers_sift_sees_the_grey_its_mapping_twin_saw(tmp_path: Path
     reloc, feats = synthetic_relocalizer(tmp_path, monkeypatch)
     reloc.sift = SiftChoice(extractor)
     seen = []
-    monkeypatch.setattr(feature_job_module, "extract_sift", lambda gray, n, ex: seen.append(gray) or feats)
+    monkeypatch.setattr(sift_module, "extract_sift", lambda gray, n, ex: seen.append(gray) or feats)
     networked = []
     scene_coordinates = type(reloc).scene_coordinates
     monkeypatch.setattr(type(reloc), "scene_coordinates",

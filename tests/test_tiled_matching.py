@@ -1,4 +1,4 @@
-"""Guided matching by tiles of the image (`usvc.relocalize.tiled_matching`) against its definition:
+"""Guided matching by tiles of the image (`usvc.relocalize.features.tiled_matching`) against its definition:
 one landmarks x keypoints product with the radius as a mask."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from usvc.relocalize import tiled_matching
-from usvc.relocalize.tiled_matching import row_best_two_within, tiles_pay
+from usvc.relocalize.features import tiled_matching
+from usvc.relocalize.features.tiled_matching import row_best_two_within, tiles_pay
 
 
 def _unit(a: np.ndarray) -> np.ndarray:

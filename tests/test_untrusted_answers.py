@@ -17,8 +17,8 @@ import pytest
 from test_fallback import N_POINTS, WRONG, _map, scene
 from test_refinement import CAM, errors, photo
 
+from usvc.relocalize.features.sift import QueryFeatures
 from usvc.relocalize.options import RelocalizeOptions
-from usvc.relocalize.query_features import QueryFeatures
 from usvc.relocalize.relocalizer import Relocalizer, features_alone_verdict
 
 pytestmark = pytest.mark.precision  # what `auto` resolves to matters here: CI runs these under both

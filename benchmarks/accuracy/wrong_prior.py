@@ -77,7 +77,7 @@ def run(reloc: Relocalizer, photos: list[tuple[Path, Camera]], names: list[str],
         R, t = perturbed_pose(res.R, res.t, degrees, shift, rng)
         return PnPResult(True, R, t, res.inlier_mask, 5 if weak else res.num_inliers, res.seconds)
 
-    relocalizer_module.solve_pnp = perturbed  # the dense PnP of `Relocalizer._localize`
+    relocalizer_module.solve_pnp = perturbed  # the dense PnP of `Relocalizer._learned_pose`
     try:
         answers, records = {}, []
         for name, (photo, camera) in zip(names, photos):

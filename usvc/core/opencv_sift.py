@@ -1,6 +1,6 @@
 """OpenCV's SIFT run as COLMAP's: the detector settings under which it finds most of COLMAP's
 keypoints at COLMAP's positions, and its descriptors in COLMAP's form. Shared by the query's
-features (usvc.relocalize.query_features) and by the sfm stage when it extracts with OpenCV
+features (usvc.relocalize.features.sift) and by the sfm stage when it extracts with OpenCV
 (`sfm.extractor=opencv`), so both sides of a match come from one implementation.
 
 COLMAP's peak threshold (0.02 / 3 octave layers) is OpenCV's contrast threshold / layers, and COLMAP

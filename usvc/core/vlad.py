@@ -1,6 +1,6 @@
 """VLAD image descriptors over a vocabulary of visual words clustered from the capture itself:
 what finds the photos most alike, for SfM's pairs of an unposed capture (`usvc.sfm.retrieval_pairs`)
-and for the mapping views a query is matched against (`usvc.relocalize.image_retrieval`). Nothing
+and for the mapping views a query is matched against (`usvc.relocalize.features.retrieval`). Nothing
 is fetched: the words are the capture's own SIFT descriptors, clustered by seeded k-means."""
 
 from __future__ import annotations

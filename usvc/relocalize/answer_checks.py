@@ -1,13 +1,25 @@
 """Verdicts on a finished answer that no single piece of evidence gives: a pose from the photo's
-features matched against every landmark alone, and a camera far outside the map
+features matched against every landmark alone, a camera far outside the map, a focal length that
+nothing supports, and the notes on a given focal length that nothing could check
 (docs/confidence.md)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from usvc.core.geometry import camera_centers
+from usvc.core.scene import Camera
 from usvc.relocalize.options import RelocalizeOptions
 
+FOCAL_UNCHECKED = ("the given focal length was not checked: this view is too shallow for the photo's features to "
+                   "tell it, and the map did not read the photo well enough to; a wrong one would move the pose "
+                   "along the optical axis")
+MAP_DOES_NOT_JUDGE = ("the given focal length was not checked: this map does not tell its own photos' focal lengths "
+                      "within focal_tolerance (a longer training lets it)")
+FOCAL_UNCHECKED_MAP = (MAP_DOES_NOT_JUDGE + ", and this view is too shallow for the photo's features to; a wrong one "
+                       "would move the pose along the optical axis")
+# The learned pose "describes" the photo when it is this close to the feature pose.
+AGREE_DEG, AGREE_DEPTH_FRACTION = 15.0, 0.5
 UNGUIDED_PATHS = ("global",)  # feature answers not guided by the learned pose: the matches to every landmark
 
 
@@ -56,3 +68,35 @@ def far_camera_verdict(center: np.ndarray, extent: tuple[np.ndarray, float] | No
     return (f"the pose puts the camera {far:.3g} map radii from the map's centre (over {FAR_RADII:g}; its mapping "
             "photos are within a few): a degenerate fit, not a view of this map (a photo stretched or cropped out "
             "of shape, or another place?)")
+
+
+def poses_agree(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray, median_depth: float) -> bool:
+    """Whether two world-to-camera poses are the same view up to what a coarse map gets wrong:
+    within AGREE_DEG of rotation and AGREE_DEPTH_FRACTION of the median scene depth apart."""
+    cos = (np.trace(R1 @ R2.T) - 1.0) / 2.0
+    angle = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    gap = float(np.linalg.norm(camera_centers(R1, t1) - camera_centers(R2, t2)))
+    return angle <= AGREE_DEG and gap <= AGREE_DEPTH_FRACTION * median_depth
+
+
+def unsupported_focal(camera: Camera, dense_inliers: int, cells: int, from_map: bool,
+                      options: RelocalizeOptions) -> str:
+    """Why a feature pose of a photo without intrinsics is no answer: its focal length came
+    neither from the photo's features (P4Pf) nor from a map that reads the photo (min_confidence
+    of the cells agreeing), so nothing supports the camera the pose was solved with."""
+    source = (f"the map's coordinates, which only {dense_inliers} of the {cells} cells agree with (confidence "
+              f"{dense_inliers / cells:.3f} < min_confidence {options.min_confidence:g})" if from_map
+              else "no evidence (the map's coordinates gave none)")
+    return (f"no focal length to trust: the one the pose was solved with ({camera.focal[0]:.4g} px) comes from "
+            f"{source}, and the photo's features give none: stretched, cropped or not of this place? Give its "
+            "intrinsics")
+
+
+def no_pose_reason(min_inliers: int, dense_inliers: int, cells: int, features_why: str | None) -> str:
+    """Why neither the map's coordinates (`dense_inliers` of `cells` at best) nor the features
+    (`features_why`; None where they did not run) gave a pose."""
+    why = (f"no pose: RANSAC-PnP on the map's scene coordinates found none that min_inliers="
+           f"{min_inliers} of the {cells} cells agree with ({dense_inliers} at best)")
+    if features_why is not None:
+        why += f", and the photo's features gave none ({features_why or 'no match to the landmarks'})"
+    return why + ": not a view of this map's scene, or too dark, blurred or featureless?"

@@ -1,6 +1,8 @@
-"""Checks of a query's camera that do not need the map: a focal length no camera has, non-square
-pixels or a principal point far off the centre (warnings), and a photo that looks stretched to
-another aspect ratio (a camera with non-square pixels explains its correspondences clearly better)."""
+"""Checks of a query's camera that do not need the map: a focal length no camera has (or, estimated
+on the map's coordinates, none like the map's cameras'), non-square pixels or a principal point far
+off the centre (warnings), and a photo that looks stretched to another aspect ratio (a camera with
+non-square pixels explains its correspondences clearly better); and the words that refuse a given
+focal length (`focal_reason`)."""
 
 from __future__ import annotations
 
@@ -40,6 +42,19 @@ def implausible_focal(focal: float, width: int, height: int, what: str) -> str:
     return (f"{what} is implausible for a {width}x{height} photo: a field of view of "
             f"{field_of_view_deg(focal, long_side):.3g} deg across its long side, where cameras have "
             f"{fovs[0]:.0f}-{fovs[1]:.0f} deg")
+
+
+def estimated_focal_problem(focal: float, width: int, height: int, focal_range: tuple[float, float] | None) -> str:
+    """Why `focal` (px), estimated with the pose on the map's coordinates of a width x height photo,
+    is no reading of the photo ("" when it is one): no camera's (`implausible_focal`), or over
+    FOCAL_SPREAD x off the map's own cameras' (`focal_range`: theirs over the long side; None for a
+    map without it)."""
+    why = implausible_focal(focal, width, height, f"the focal length estimated with the pose ({focal:.4g} px)")
+    ratio, lo_hi = focal / max(width, height), focal_range
+    if not why and lo_hi and not lo_hi[0] / FOCAL_SPREAD <= ratio <= lo_hi[1] * FOCAL_SPREAD:
+        why = (f"the focal length estimated with the pose ({focal:.4g} px, {ratio:.2f}x the long side) "
+               f"is over {FOCAL_SPREAD:g}x off the map's cameras' ({lo_hi[0]:.2f}-{lo_hi[1]:.2f}x)")
+    return why
 
 
 def intrinsics_warnings(camera: Camera) -> list[str]:
@@ -103,3 +118,11 @@ def stretch_verdict(pixels: np.ndarray, points: np.ndarray, camera: Camera, R: n
     return (f"the photo looks stretched: a camera with fx/fy = {aspect:.2f} explains {support / kept:.1f}x as many "
             "of its correspondences as the square-pixel one estimated with the pose (a camera's pixels are square): was it "
             "resized to another aspect ratio? Localize the original photo, or give its intrinsics")
+
+
+def focal_reason(evidence: str, ratio: float, tolerance: float, source: str) -> str:
+    """Why a given focal length is refused; `source` names where it came from (e.g. EXIF)."""
+    if source:
+        return (f"{source} disagrees with the photo's content: {evidence} a focal length {ratio:.2f}x it "
+                f"(tolerance {tolerance:g})")
+    return f"{evidence} a focal length {ratio:.2f}x the given one (tolerance {tolerance:g}); check the intrinsics"

@@ -15,14 +15,14 @@ BACKENDS = ("pycolmap", "opencv", "poselib")
 FEATURE_PNP = ("poselib", "pycolmap")  # the feature passes' LO-RANSAC PnP (usvc/relocalize/pnp.py)
 REFINE = ("features", "keypoints", "none")
 PRIORS = ("learned", "none")  # what guides refinement by features first
-EXTRACTORS = ("auto", "opencv", "colmap")  # query SIFT (usvc/relocalize/query_features.py)
-FINAL = ("confirmed", "guided", "images")  # refinement by features' last pass (usvc/relocalize/feature_refinement.py)
+EXTRACTORS = ("auto", "opencv", "colmap")  # query SIFT (usvc/relocalize/features/sift.py)
+FINAL = ("confirmed", "guided", "images")  # refinement by features' last pass (usvc/relocalize/features/last_pass.py)
 REFERENCE_SHORT_SIDE = 480  # ACE's working short side, where its 10 px inlier threshold was tuned
 # An inlier threshold above this (px at a 480 px short side, a fifth of it) accepts any pose: every
 # cell "agrees" with a pose far off, so confidence says nothing.
 MAX_ERROR_PX = 100.0
 # The keypoint-guided refinement's values: `refine_<name>` here, `<name>` in RefineOptions
-# (usvc/relocalize/refinement.py), which is built from them. `refine_problems` is the one rule for both.
+# (usvc/relocalize/keypoint_refinement.py), which is built from them. `refine_problems` is the one rule for both.
 REFINE_VALUES = ("radius_px", "max_iterations", "delta", "min_correspondences")
 
 

@@ -7,7 +7,7 @@ photos share nothing, so on a machine with many cores (or a GPU, which runs each
 milliseconds while the CPU does the rest) several in flight keep every core busy. Each query then
 runs with `threads // workers` threads of its own (torch's, OpenCV's and BLAS's pools, set for the batch)
 and does its side work in place rather than on the per-process worker thread
-(`usvc.relocalize.feature_job.inline_jobs`), so the answers are bit for bit those of the photos
+(`usvc.relocalize.query_cores.inline_jobs`), so the answers are bit for bit those of the photos
 localized one after the other with that many threads."""
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from contextlib import contextmanager
 from typing import TypeVar
 
 from usvc.core.errors import UsvcError
-from usvc.relocalize.feature_job import inline_jobs
-from usvc.relocalize.query_cores import network_threads, side_libraries
+from usvc.relocalize.query_cores import inline_jobs, network_threads, side_libraries
 
 T = TypeVar("T")
 R = TypeVar("R")

@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from usvc.core.errors import UsvcError
-from usvc.relocalize.feature_job import inline_jobs
 from usvc.relocalize.photo_batch import query_threads
+from usvc.relocalize.query_cores import inline_jobs
 
 _WORKER: Any = None  # the worker process's relocalizer, made once by `_start`
 _POOLS = contextlib.ExitStack()  # the worker process's thread pool settings, held while it lives

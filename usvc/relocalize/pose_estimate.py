@@ -1,15 +1,27 @@
 """The answer for one query photo: its pose, how it was found and how far to trust it, as the
-Python API returns it and as `usvc localize` and the relocalize stage write it."""
+Python API returns it and as `usvc localize` and the relocalize stage write it (`PoseEstimate`);
+and the query that it is made of, as the relocalizer's steps fill it in (`Query`)."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from usvc.core.geometry import camera_centers, matrix_to_quat_wxyz
 from usvc.core.scene import Camera
+from usvc.relocalize.answer_checks import far_camera_verdict, no_pose_reason
+from usvc.relocalize.options import RelocalizeOptions
+
+if TYPE_CHECKING:
+    from usvc.relocalize.features.path import FeatureResult
+    from usvc.relocalize.pnp import PnPResult
+    from usvc.relocalize.query_cores import Job
+
+FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features
 
 
 def nan_R() -> np.ndarray:
@@ -97,3 +109,76 @@ class PoseEstimate:
             out["camera"] = {"model": c.model, "width": c.width, "height": c.height,
                              "params": [float(v) for v in c.params], "focal_estimated": self.focal_estimated}
         return out
+
+
+@dataclass
+class Query:
+    """One photo's query as `Relocalizer._localize`'s steps fill it in: the photo (`_photo`), the
+    map's coordinates of its cells (`_coordinates`), the learned pose (`_learned_pose`) and the
+    answer as refinement and the verdicts leave it; the PoseEstimate is made of it (`estimate`)."""
+
+    t0: float  # perf_counter when the query started
+    width: int  # the photo's size
+    height: int
+    intrinsics: bool  # whether they were given (else the focal length is estimated with the pose)
+    source: str  # where they came from, for the reasons a query they fail gives
+    given: Camera | None  # the camera the answer reports: the given one, else the one estimated with the pose
+    warnings: list[str]
+    gray: np.ndarray  # the network's grey: undistorted, at the map's working size
+    resize: float  # the working size over the photo's
+    camera: Camera | None  # gray's camera, None while the focal length is unknown
+    full_camera: Camera | None  # the undistorted photo's, at its own size: what the features see
+    sift_job: Job | None  # the photo's SIFT, found beside the network (refine=features)
+    t1: float = 0.0  # perf_counter before the network, after it, after the dense PnP
+    t2: float = 0.0
+    t3: float = 0.0
+    coords: np.ndarray | None = None  # (h, w, 3) scene coordinates of gray's 8x8 cells
+    pixels: np.ndarray | None = None  # (cells, 2) their centres
+    cells: int = 0
+    threshold: float = 0.0  # the dense PnP's inlier threshold, px at the working size
+    no_focal: str = ""  # why the map's coordinates gave no focal length, when the photo has none
+    map_focal: Callable[[], Camera | None] | None = None  # the map's own focal estimate, for its verdicts
+    dense: PnPResult | None = None  # the learned pose
+    # the answer, as refinement and the verdicts leave it
+    R: np.ndarray = field(default_factory=nan_R)
+    t: np.ndarray = field(default_factory=nan_t)
+    inliers: int = 0  # the cells that agree with (R, t)
+    iterations: int = 0  # keypoint-guided refinement's
+    kept: bool = False
+    path: str = "dense"  # which evidence the pose came from: FEATURE_PATHS, keypoints or dense
+    feature: FeatureResult | None = None  # what refinement by features found
+    rejected: str = ""
+
+    def estimate(self, extent: Callable[[], tuple[np.ndarray, float] | None], options: RelocalizeOptions,
+                 refine_method: str) -> PoseEstimate:
+        """The answer: the pose where the evidence and every verdict let it stand (the last, a camera far
+        outside the map's `extent`: `far_camera_verdict`), else NaN and why not."""
+        assert self.dense is not None
+        t4 = time.perf_counter()
+        seconds = {"preprocess": self.t1 - self.t0, "network": self.t2 - self.t1, "pnp": self.t3 - self.t2,
+                   "refine": t4 - self.t3, "total": t4 - self.t0}
+        feature, dense = self.feature, self.dense
+        if feature is not None and feature.verified_seconds is not None:  # SIFT + PnP's matching, part of refine
+            seconds["fallback"] = feature.verified_seconds
+        by_features = self.path in FEATURE_PATHS
+        R, t, rejected = self.R, self.t, self.rejected
+        if (dense.success or by_features) and not rejected:
+            rejected = far_camera_verdict(camera_centers(R, t), extent())
+        success = (dense.success or by_features) and not rejected
+        pose_found = bool(dense.success or (feature is not None and feature.success))
+        if not success:
+            R, t = nan_R(), nan_t()
+            if not rejected:  # every failure says why
+                rejected = self.no_focal or no_pose_reason(options.min_inliers, dense.num_inliers, self.cells,
+                                                           None if feature is None else feature.why)
+        return PoseEstimate(success, R, t, self.inliers, self.cells, seconds,
+                            initial_R=dense.R.copy() if success and dense.success else nan_R(),
+                            initial_t=dense.t.copy() if success and dense.success else nan_t(),
+                            refine_iterations=self.iterations, refine_kept=self.kept or by_features,
+                            camera=self.given, focal_estimated=not self.intrinsics, rejected=rejected,
+                            refine_method=refine_method, refine_path=self.path if success else "",
+                            feature_inliers=feature.inliers if feature is not None else 0,
+                            feature_passes=feature.passes if feature is not None else [],
+                            feature_hypotheses=feature.tried if feature is not None else [],
+                            verified=feature.verified if feature is not None else None,
+                            warnings=self.warnings, pose_found=pose_found, prior=options.prior)

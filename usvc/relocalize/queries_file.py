@@ -1,6 +1,6 @@
 """queries.h5, the relocalize stage's per-query records: its one writer and its readers.
 
-Written by `usvc.relocalize.relocalize_scene.write_results` beside poses.txt; read by the metrics
+Written by `usvc.relocalize.run.write_results` beside poses.txt; read by the metrics
 stage. Every dataset carries
 units/description/frame attributes (QUERIES_SCHEMA; docs/artifacts.md). Timings are not part of
 the file (two runs that give the same poses give the same bytes): files written before that

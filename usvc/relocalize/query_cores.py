@@ -1,11 +1,19 @@
-"""How the two threads of one query share the cores.
+"""A query's two threads: its side work on a worker thread (`Job`), and how the two share the cores.
 
-With more than one thread, a query's side work (the photo's SIFT, its matches to every landmark,
-the focal verdicts: `usvc.relocalize.feature_job`) runs on a worker thread while the main thread
-runs the network, the PnP and the guided passes. Left alone, each library would run its own pool
-of `threads` threads on each side: torch's for the network, OpenCV's inside the SIFT, OpenBLAS's
-inside every descriptor product, so on two cores four to six threads fight for two, and
-OpenBLAS's threads spin while they wait for work, taking the core the other side needs.
+Refinement by features needs the photo's SIFT keypoints and, for the focal-length verdict (or when
+the learned pose misses), their matches to every landmark; neither depends on the learned pose.
+The map's own focal-length estimate (P4Pf on its coordinates) needs only the network's output.
+With more than one thread (torch's count), each is computed on a worker thread as soon as its
+inputs exist (`Job`), while the main thread runs the network, the PnP and the guided passes: the
+same functions on the same inputs, so the same keypoints, matches and estimates, in less wall time
+(OpenCV, BLAS, COLMAP and torch release the GIL). With one thread each is computed in place, only
+when asked for, as it is on a thread that `inline_jobs` marks (one of several queries running at
+once, `usvc.relocalize.photo_batch`: they would all queue on the one worker).
+
+Left alone, each library would run its own pool of `threads` threads on each side: torch's for the
+network, OpenCV's inside the SIFT, OpenBLAS's inside every descriptor product, so on two cores four
+to six threads fight for two, and OpenBLAS's threads spin while they wait for work, taking the core
+the other side needs.
 
 So while a query's side work runs beside it, the threads are split (`split`): the network runs
 on torch's threads less the side's share, and OpenCV and BLAS on the side's share (one thread
@@ -20,9 +28,14 @@ puts them back as they were, so queries overlapping in several threads of a proc
 from __future__ import annotations
 
 import functools
+import os
 import threading
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import AbstractContextManager, contextmanager
+from typing import Any, TypeVar
+
+import torch
 
 _LOCK = threading.Lock()
 _LOCAL = threading.local()  # .network: the network's threads in the query this thread runs, when split
@@ -81,8 +94,6 @@ def side_libraries(threads: int) -> AbstractContextManager[None]:
 
 def network_threads(threads: int) -> AbstractContextManager[None]:
     """torch's intra-op pool at `threads` while any query's network is inside; then as it was."""
-    import torch
-
     def apply() -> Callable[[], None]:
         before = torch.get_num_threads()
         torch.set_num_threads(threads)
@@ -122,3 +133,65 @@ def for_network() -> Iterator[None]:
         return
     with network_threads(network):
         yield
+
+
+# The side work: jobs on the process's one worker thread, in the order they were started.
+T = TypeVar("T")
+_POOL: ThreadPoolExecutor | None = None
+_POOL_PID = 0  # the process that made _POOL: a forked child has none of its threads, so makes its own
+_POOL_LOCK = threading.Lock()
+_THREAD = threading.local()  # .inline: this thread runs its jobs in place
+
+
+@contextmanager
+def inline_jobs() -> Iterator[None]:
+    """Jobs started on this thread meanwhile run in place, when asked for, whatever the thread count."""
+    before = getattr(_THREAD, "inline", False)
+    _THREAD.inline = True
+    try:
+        yield
+    finally:
+        _THREAD.inline = before
+
+
+def _pool() -> ThreadPoolExecutor:
+    """One worker for the whole process: one job at a time, in the order they were started."""
+    global _POOL, _POOL_LOCK, _POOL_PID
+    if _POOL_PID != os.getpid():  # a fork copies the lock in whatever state it was, not its holder
+        _POOL_LOCK = threading.Lock()
+    with _POOL_LOCK:
+        if _POOL is None or _POOL_PID != os.getpid():
+            _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="usvc-features")
+            _POOL_PID = os.getpid()
+        return _POOL
+
+
+def runs_beside() -> bool:
+    """Whether a job started now on this thread runs on the worker thread: torch runs on more than
+    one thread and this thread is not in `inline_jobs`."""
+    return torch.get_num_threads() > 1 and not getattr(_THREAD, "inline", False)
+
+
+class Job:
+    """`fn(*args)`: started at once on the worker thread when `background` (default: torch runs on
+    more than one thread and this thread is not in `inline_jobs`), else run in place when `result`
+    is first called. Work that may turn out unneeded is started only in the background, where it
+    costs no wall time."""
+
+    def __init__(self, fn: Callable[..., T], *args: Any, background: bool | None = None) -> None:
+        self._fn, self._args = fn, args
+        self._done = False
+        self._value: T | None = None
+        if background is None:
+            background = runs_beside()
+        self._future: Future | None = _pool().submit(fn, *args) if background else None
+
+    @property
+    def background(self) -> bool:
+        return self._future is not None
+
+    def result(self) -> T:
+        if not self._done:
+            self._value = self._future.result() if self._future is not None else self._fn(*self._args)
+            self._done = True
+        return self._value  # type: ignore[return-value]

@@ -1,5 +1,6 @@
 """What a query brings: its photo (a path or an array) as float luma, its intrinsics in any of the
-forms the API takes, and the torch device to run on, each checked with one clear line."""
+forms the API takes, and the torch device to run on, each checked with one clear line; and a photo
+that is no camera view (too small, a strip) or blank."""
 
 from __future__ import annotations
 
@@ -15,6 +16,10 @@ from usvc.core.scene import Camera
 from usvc.model.preprocess import luma01
 
 Intrinsics = float | Sequence[float] | np.ndarray | Camera
+MIN_IMAGE_SIDE = 32
+MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
+# A photo below this contrast (std of its grey levels in [0, 1]) is blank: nothing to localize.
+MIN_CONTRAST = 1.0 / 255.0
 
 
 def camera_from_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Camera:
@@ -72,3 +77,21 @@ def check_device(device: str) -> str:
     if not isinstance(device, str) or device_problem(device):
         raise UsvcError(f"device={device!r} is not a torch device usvc runs on ({DEVICE_CHOICES})")
     return resolve_device(device)
+
+
+def check_size(width: int, height: int) -> None:
+    """One UsvcError for a photo too small, or too long and thin, to be a camera view usvc localizes."""
+    if min(height, width) < MIN_IMAGE_SIDE:
+        raise UsvcError(f"image is {width}x{height}; need at least {MIN_IMAGE_SIDE} px on each side")
+    if max(height, width) > MAX_ASPECT * min(height, width):
+        aspect = max(height, width) / min(height, width)
+        raise UsvcError(f"image is {width}x{height}, an aspect ratio of {aspect:.1f}:1; usvc localizes photos up to "
+                        f"{MAX_ASPECT}:1 (a strip or panorama is not a camera view it can map)")
+
+
+def blank(gray01: np.ndarray) -> str:
+    """Why the photo is blank ("" when it is not): its grey levels vary by less than MIN_CONTRAST."""
+    if float(gray01.std()) < MIN_CONTRAST:
+        return (f"the photo is blank (its grey levels vary by {255 * float(gray01.std()):.2g} of 255): "
+                "nothing to localize")
+    return ""

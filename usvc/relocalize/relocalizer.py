@@ -4,7 +4,14 @@ map's landmarks, guided by that pose, LO-RANSAC PnP; matching against every land
 learned pose is missing or too far off) or keypoint-guided (paper §3.2.2, refine=keypoints).
 
 This is the one implementation behind the relocalize stage, the Python API and `usvc localize`,
-so benchmark numbers and real use cannot drift apart.
+so benchmark numbers and real use cannot drift apart. Here are the dense core (the network, the
+focal length from its coordinates, the dense PnP: the learned pose) and the verdicts that weigh
+the evidence; refinement by features is `usvc.relocalize.features`, reached through its one entry
+point, `FeaturePath` (features/path.py). `Relocalizer._localize` runs the steps on a `Query`:
+`_photo` (checks, undistortion, the photo's SIFT started beside the network), `_coordinates` (the
+network; the focal length), `_learned_pose` (the dense PnP), `_refine_by_keypoints` or
+`_refine_by_features`, `_dense_verdict` where the learned pose is the answer; `Query.estimate`
+(pose_estimate.py) makes the answer.
 """
 
 from __future__ import annotations
@@ -20,61 +27,47 @@ import torch
 
 from usvc.core.absolute_pose import estimate_focal
 from usvc.core.errors import UsvcError
-from usvc.core.geometry import camera_centers
 from usvc.core.images import Photo, read_photo
 from usvc.core.options import check
-from usvc.core.precision import autocast, resolve_precision
+from usvc.core.precision import autocast
 from usvc.core.scene import Camera
 from usvc.core.sift_grey import colmap_grey
 from usvc.core.undistort import undistort
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.landmarks.landmarks_file import landmarks_beside, landmarks_disagree, read_landmarks
 from usvc.model.encoder import cell_centers
-from usvc.model.head import Regressor
-from usvc.model.map_file import load_map, map_keypoints, read_map_header
+from usvc.model.map_file import read_map_header
 from usvc.model.preprocess import normalise, resize_to_short_side
-from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.answer_checks import (  # noqa: F401 (re-exported)
-    FAR_RADII, UNGUIDED_PATHS, far_camera_verdict, features_alone_verdict, map_extent)
-from usvc.relocalize.feature_job import Job, feature_job, global_match_job, runs_beside
-from usvc.relocalize.byte_products import ByteRows, scaled
-from usvc.relocalize.device_matching import matching_device
-from usvc.relocalize.feature_answer import FeatureAnswers
-from usvc.relocalize.feature_refinement import FeatureResult
-from usvc.relocalize.image_retrieval import ImageRetrieval, Retrieved
-from usvc.relocalize.focal_verdicts import (
-    FOCAL_UNCHECKED,
-    FOCAL_UNCHECKED_MAP,
-    FOCAL_UNOBSERVABLE,
-    MAP_DOES_NOT_JUDGE,
-    FocalVerdicts,
-)
-from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp
+    FAR_RADII, FOCAL_UNCHECKED, FOCAL_UNCHECKED_MAP, MAP_DOES_NOT_JUDGE, UNGUIDED_PATHS, far_camera_verdict,
+    features_alone_verdict, map_extent, poses_agree, unsupported_focal)
 from usvc.relocalize.camera_checks import (
-    FOCAL_SPREAD,
-    intrinsics_warnings,
+    estimated_focal_problem,
+    focal_reason,
     implausible_focal,
+    intrinsics_warnings,
     stretch_verdict,
 )
-from usvc.relocalize.pose_estimate import PoseEstimate, nan_R, nan_t
-from usvc.relocalize.query_features import choose_sift
-from usvc.relocalize.query_input import Intrinsics, as_gray, camera_from_intrinsics, check_device
+from usvc.relocalize.features.path import (
+    FOCAL_UNOBSERVABLE,
+    FeaturePath,
+    FeatureResult,
+    PhotoFeatures,
+    QueryEvidence,
+    query_sift,
+)
+from usvc.relocalize.keypoint_refinement import RefineOptions, refine_pose
+from usvc.relocalize.map_loading import find_landmarks, load_network, map_views
+from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.photo_processes import RelocalizerArgs, in_processes
-from usvc.relocalize.query_cores import for_network, query_split
-from usvc.relocalize.refinement import RefineOptions, refine_pose
-from usvc.relocalize.verified_matching import HeldKeypointDescriptors, observation_descriptors
-from usvc.weights import WEIGHTS_DIR, load_configured_encoder
+from usvc.relocalize.pnp import PnPResult, reprojection_inliers, solve_pnp
+from usvc.relocalize.pose_estimate import FEATURE_PATHS, PoseEstimate, Query, nan_R, nan_t
+from usvc.relocalize.query_cores import Job, for_network, query_split, runs_beside
+from usvc.relocalize.query_input import Intrinsics, as_gray, blank, camera_from_intrinsics, check_device, check_size
 
 log = logging.getLogger(__name__)
 
-MIN_IMAGE_SIDE = 32
-MAX_ASPECT = 4  # long side / short side of a query photo (phones: 1.3-2.2)
-# A photo below this contrast (std of its grey levels in [0, 1]) is blank: nothing to localize.
-MIN_CONTRAST = 1.0 / 255.0
-
 CAMERA_FOV = "crop"  # a distorted query is undistorted as prepare undistorts mapping images
-FEATURE_PATHS = ("guided", "global", "verified")  # answers that came from the photo's features
 
 
 def refine_options(options: RelocalizeOptions) -> RefineOptions:
@@ -82,7 +75,7 @@ def refine_options(options: RelocalizeOptions) -> RefineOptions:
                          delta=options.refine_delta, min_correspondences=options.refine_min_correspondences)
 
 
-class Relocalizer(FeatureAnswers, FocalVerdicts):
+class Relocalizer:
     """A loaded map (head + its encoder), ready to localize photos of that scene."""
 
     def __init__(self, map_path: str | Path, encoder_weights: str | Path | None = None,
@@ -97,26 +90,10 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         check(self.options, "relocalize")
         self.seed = seed  # RANSAC's seed
         header = read_map_header(map_path)
-        width = float(header["encoder"].get("width", 1.0))
-        kind = str(header["encoder"].get("kind", "ace"))
-        if encoder_weights is None:  # the shipped file the map was trained with (e.g. model=small_real)
-            recorded = header["metadata"].get("encoder_file")
-            if isinstance(recorded, str) and kind == "ace" and (WEIGHTS_DIR / Path(recorded).name).is_file():
-                encoder_weights = WEIGHTS_DIR / Path(recorded).name
-        encoder, _ = load_configured_encoder(width, encoder_weights, kind)
-        self.regressor: Regressor
-        self.regressor, self.metadata = load_map(map_path, encoder, header)
-        self.regressor.to(device).eval()
-        self.device = device
-        # The map's weights are stored at fp16 whatever precision it was trained at, so any map runs
-        # at either precision on any machine.
-        self.precision = resolve_precision(self.options.precision, device)
-        # bf16 on a CPU: oneDNN's convolutions run faster in the channels-last layout (the network alone
-        # 18-20 against 20-24 ms on mini's map, 20-22 against 23-30 on bird's; docs/speed.md); fp32 did not gain
-        self.memory_format = torch.channels_last if self.precision == "bf16" and torch.device(device).type == "cpu" \
-            else torch.contiguous_format
-        self.regressor.to(memory_format=self.memory_format)
-        self.sift = choose_sift(self.options.features_extractor, device, self.options.prior)  # the query's SIFT, and where it runs
+        network = load_network(map_path, header, encoder_weights, self.options.precision, device)
+        self.regressor, self.metadata, self.device = network.regressor, network.metadata, device
+        self.precision, self.memory_format = network.precision, network.memory_format
+        self.sift = query_sift(self.options, device)  # the query's SIFT, and where it runs
         if "short_side" not in self.metadata:
             raise UsvcError(f"map file {map_path} has no metadata field 'short_side' (the image size its head "
                             "was trained at): not a map the train stage wrote")
@@ -125,61 +102,29 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
         # what a worker process needs to make the same relocalizer (`localize_many(processes=True)`): the
         # precision as resolved here, since `auto` times the products (a process starting beside others could
         # find them otherwise)
+        encoder_weights = network.encoder_weights
         self.args = RelocalizerArgs(self.map_path, None if encoder_weights is None else Path(encoder_weights),
                                     replace(self.options, precision=self.precision), device, seed,
                                     None if landmarks is None else Path(landmarks))
-        spread = self.metadata.get("focal_range")  # checked on load; maps before it have none
-        self.focal_range = (float(spread[0]), float(spread[1])) if spread is not None else None
-        # The map judges a given focal length only if it tells its own views' within the tolerance
-        # (usvc.train.focal_calibration; maps before that measure judge, as they did)
-        error = self.metadata.get("focal_error")
-        self.map_judges_focal = bool(error is None or float(error) <= np.log1p(self.options.focal_tolerance))
-        if not self.map_judges_focal and self.options.focal_tolerance > 0:
-            log.info("map %s implies its own views' focal lengths only within %.0f %% (90th percentile), over "
-                     "focal_tolerance %g: the map does not judge given focal lengths, the photos' features do",
-                     map_path, 100 * (np.exp(float(error)) - 1), self.options.focal_tolerance)
-        self.keypoints_xyz = map_keypoints(header)
-        depth = self.metadata.get("median_depth")
-        self.median_depth = float(depth) if isinstance(depth, (int, float)) and np.isfinite(depth) and depth > 0 else 1.0
+        views = map_views(map_path, header, self.metadata, self.options.focal_tolerance)
+        self.focal_range, self.map_judges_focal = views.focal_range, views.judges_focal
+        self.keypoints_xyz, self.median_depth = views.keypoints_xyz, views.median_depth
         self.refine_options = refine_options(self.options)
         self.refine = self.options.refine == "keypoints" and self.keypoints_xyz is not None
         if self.options.refine == "keypoints" and self.keypoints_xyz is None:
             log.warning("map %s has no 3D keypoints: keypoint-guided refinement is off", self.map_path)
         self.landmarks: Landmarks | None = None
         self.landmarks_path: Path | None = None
+        self.features: FeaturePath | None = None  # refinement by features, where the map has landmarks
         self.prior = self.options.prior == "learned"  # prior=none: the learned pose guides nothing
         if not self.prior and self.options.refine != "features":
             raise UsvcError(f"relocalize.prior=none needs relocalize.refine=features (got {self.options.refine!r}): "
                             "without the learned pose only the photo's features can give a pose")
-        if self.options.refine == "features":
-            self._load_landmarks(landmarks)
-
-    def _load_landmarks(self, landmarks: str | Path | None) -> None:
-        """Read and check the map's landmarks; a map without them localizes without refinement."""
-        if landmarks is not None and not isinstance(landmarks, (str, Path)):
-            raise UsvcError(f"landmarks must be the path of a landmarks.h5, got {type(landmarks).__name__}")
-        path = Path(landmarks) if landmarks is not None else landmarks_beside(self.map_path)
-        if path is None:
-            if not self.prior:
-                raise UsvcError(f"relocalize.prior=none needs the map's landmarks, and map {self.map_path} has none "
-                                "beside it (landmarks.h5; --landmarks names it)")
-            log.warning("map %s has no landmarks beside it (landmarks.h5): refinement by features is off",
-                        self.map_path)
-            return
-        found = read_landmarks(path)
-        why = landmarks_disagree(found, self.metadata.get("scene"), self.keypoints_xyz)
-        if why:
-            raise UsvcError(f"{path} are not the landmarks of map {self.map_path}: {why}")
-        self.landmarks, self.landmarks_path = found, path
-        self._landmark_desc = scaled(found.descriptor)  # matched by COLMAP's integer dots (`byte_products`)
-        self._landmark_bytes = ByteRows.of(found.descriptor)
-        self._observation_desc = observation_descriptors(found.observations) if found.observations is not None \
-            else None
-        self._keypoint_desc = HeldKeypointDescriptors(found.observations)  # SIFT + PnP's matching reads them
-        self._retrieval = ImageRetrieval(found)  # the mapping photos most like a query
-        if not self.prior and found.observations is None:
-            raise UsvcError(f"relocalize.prior=none needs landmarks with their observations; {path} has none "
-                            "(format version 1): rebuild them with the landmarks stage")
+        found = find_landmarks(landmarks, self.map_path, self.metadata, self.keypoints_xyz, self.prior) \
+            if self.options.refine == "features" else None
+        if found is not None:  # refinement by features
+            self.landmarks, self.landmarks_path = found
+            self.features = FeaturePath(self.landmarks, self.options, self.device, self.seed)
 
     def localize_many(self, photos: Iterable[tuple[np.ndarray | str | Path | Photo, Intrinsics | None]],
                       workers: int = 1, processes: bool = False) -> Iterator[PoseEstimate]:
@@ -247,7 +192,7 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
 
         Every failed answer says why in ``rejected``; doubts that did not stop it (a principal
         point far off the centre, non-square pixels) are in ``warnings``."""
-        if self.landmarks is not None and runs_beside():  # side work on the worker thread: the threads are
+        if self.features is not None and runs_beside():  # side work on the worker thread: the threads are
             with query_split(torch.get_num_threads()):  # split between the two sides (`query_cores`)
                 return self._localize(image, intrinsics, channels=channels, intrinsics_source=intrinsics_source)
         return self._localize(image, intrinsics, channels=channels, intrinsics_source=intrinsics_source)
@@ -261,29 +206,53 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
             if photo.reduction > 1:
                 return self._localize_reduced(photo, intrinsics, intrinsics_source)
             image, channels = photo.bgr, "bgr"
+        q = self._photo(image, intrinsics, channels, intrinsics_source)
+        if isinstance(q, PoseEstimate):  # nothing to localize: a blank photo, a focal length no camera has
+            return q
+        self._coordinates(q)
+        if q.camera is None and self.features is None:  # no focal length, and no features to find one
+            t3 = time.perf_counter()
+            seconds = {"preprocess": q.t1 - q.t0, "network": q.t2 - q.t1, "pnp": t3 - q.t2, "refine": 0.0,
+                       "total": t3 - q.t0}
+            return PoseEstimate(False, nan_R(), nan_t(), 0, q.cells, seconds, focal_estimated=True,
+                                rejected=q.no_focal, warnings=q.warnings, pose_found=False)
+        self._learned_pose(q)
+        # the photo's features, and (on the worker, while the guided passes run) their matches to every landmark
+        found = self.features.gather(q.sift_job, q.intrinsics) \
+            if self.features is not None and q.sift_job is not None else None
+        # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
+        # before the features have had their say; the checks below judge the final answer with the
+        # evidence that produced it.
+        if q.dense.success and self.refine:
+            self._refine_by_keypoints(q)
+        if found is not None:
+            self._refine_by_features(q, found)
+        if q.dense.success and q.path not in FEATURE_PATHS and not q.rejected:
+            q.rejected = self._dense_verdict(q)
+        return q.estimate(self._extent, self.options,
+                          self.options.refine if (self.refine or self.features is not None) else "none")
+
+    def _photo(self, image: np.ndarray, intrinsics: Intrinsics | None, channels: str,
+               source: str) -> Query | PoseEstimate:
+        """The photo as the steps take it: the network's grey (undistorted, at the map's working size)
+        and its camera; the photo's SIFT started beside the network. A photo with nothing to localize
+        (blank, or a focal length no camera has) is answered at once."""
         t0 = time.perf_counter()
         gray = as_gray(image, channels)  # the network's luma (checks the array too)
         # COLMAP's SIFT on the grey COLMAP's reader makes, as the sfm stage extracted the mapping photos
         # (`sift_grey`); OpenCV's on the luma, as `sfm.extractor=opencv` extracts them
         sift_gray = colmap_grey(np.asarray(image), rgb=channels == "rgb").astype(np.float32) / 255.0 \
-            if self.landmarks is not None and self.sift.kind == "colmap" else gray
+            if self.features is not None and self.sift.kind == "colmap" else gray
         h, w = gray.shape
-        if min(h, w) < MIN_IMAGE_SIDE:
-            raise UsvcError(f"image is {w}x{h}; need at least {MIN_IMAGE_SIDE} px on each side")
-        if max(h, w) > MAX_ASPECT * min(h, w):
-            raise UsvcError(f"image is {w}x{h}, an aspect ratio of {max(h, w) / min(h, w):.1f}:1; usvc localizes "
-                            f"photos up to {MAX_ASPECT}:1 (a strip or panorama is not a camera view it can map)")
+        check_size(w, h)
         given = None if intrinsics is None else camera_from_intrinsics(intrinsics, w, h)
         warnings = intrinsics_warnings(given) if given is not None else []
         for line in warnings:
             log.warning("%s", line)
-        early = ""  # a reason to answer without looking: a blank photo, a focal length no camera has
-        if float(gray.std()) < MIN_CONTRAST:
-            early = (f"the photo is blank (its grey levels vary by {255 * float(gray.std()):.2g} of 255): "
-                     "nothing to localize")
-        elif given is not None:
+        early = blank(gray)  # a reason to answer without looking: a blank photo, a focal length no camera has
+        if not early and given is not None:
             focal = float(np.sqrt(given.focal[0] * given.focal[1]))
-            early = implausible_focal(focal, w, h, intrinsics_source or f"the given focal length ({focal:.4g} px)")
+            early = implausible_focal(focal, w, h, source or f"the given focal length ({focal:.4g} px)")
         if early:
             hw = self.working_image(gray)[0].shape
             return PoseEstimate(False, nan_R(), nan_t(), 0, -(-hw[0] // 8) * -(-hw[1] // 8),
@@ -294,145 +263,159 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
             if sift_gray is not gray:
                 sift_gray = undistort(sift_gray, given, CAMERA_FOV, where="query image")[0]
             gray, camera = undistort(gray, given, CAMERA_FOV, where="query image")
-        full_gray, full_camera = sift_gray, camera  # undistorted, at the photo's size: what features see
-        job = None  # the photo's features, found on a second thread while the network runs
-        if self.landmarks is not None:
-            job = feature_job(full_gray, self.landmarks.image_short_side, self.options.features_max_keypoints,
-                              self.sift)
+        full_camera = camera  # undistorted, at the photo's size: what features see (in sift_gray)
+        job = self.features.start(sift_gray, self.sift) if self.features is not None else None  # beside the network
         gray, resize = self.working_image(gray)
         if resize != 1.0 and camera is not None:
             camera = camera.scaled(gray.shape[1], gray.shape[0])
-        t1 = time.perf_counter()
-        coords = self.scene_coordinates(gray)
-        t2 = time.perf_counter()
-        hc, wc = coords.shape[:2]
+        return Query(t0, w, h, intrinsics is not None, source, given, warnings, gray, resize, camera, full_camera, job)
+
+    def _coordinates(self, q: Query) -> None:
+        """The network's scene coordinates of the photo's cells, and where the photo has no focal
+        length, the one they imply (P4Pf) if the map reads the photo (else why not: `no_focal`)."""
+        q.t1 = time.perf_counter()
+        q.coords = self.scene_coordinates(q.gray)
+        q.t2 = time.perf_counter()
+        hc, wc = q.coords.shape[:2]
+        q.cells = hc * wc
         # Scale the threshold with the working resolution: 10 px at 480 px is 5 px at 240 px.
-        threshold = self.options.max_error_px * min(gray.shape) / REFERENCE_SHORT_SIDE
-        pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
-        no_focal = ""  # why the map's coordinates gave no focal length, when the photo has none
-        if camera is None and self.prior:
-            camera = estimate_focal(pixels, coords.reshape(-1, 3), gray.shape[1], gray.shape[0], threshold,
-                                    self.seed)
-            if camera is None:
-                no_focal = ("no camera explains the map's scene coordinates of this photo, so its focal length "
-                            "cannot be estimated: not a view of this map's scene (or too dark or blurred?)")
-            else:
-                f = camera.params[0] / resize
-                no_focal = implausible_focal(f, w, h, f"the focal length estimated with the pose ({f:.4g} px)")
-                ratio, lo_hi = f / max(w, h), self.focal_range
-                if not no_focal and lo_hi and not lo_hi[0] / FOCAL_SPREAD <= ratio <= lo_hi[1] * FOCAL_SPREAD:
-                    no_focal = (f"the focal length estimated with the pose ({f:.4g} px, {ratio:.2f}x the long side) "
-                                f"is over {FOCAL_SPREAD:g}x off the map's cameras' ({lo_hi[0]:.2f}-{lo_hi[1]:.2f}x)")
-                if no_focal:  # the map does not read this photo: its dense answer is no answer
-                    no_focal += ": the map does not recognise this photo (another place, or stretched or cropped?)"
-                    camera = None
-                else:
-                    given = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
-                    full_camera = given
-        if camera is None and self.landmarks is None:
-            t3 = time.perf_counter()
-            seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": 0.0, "total": t3 - t0}
-            return PoseEstimate(False, nan_R(), nan_t(), 0, hc * wc, seconds, focal_estimated=True,
-                                rejected=no_focal, warnings=warnings, pose_found=False)
-        map_focal = None  # the map's own estimate of the focal length (P4Pf on its coordinates) for its verdicts:
-        if camera is not None and self.prior and intrinsics is not None and self.options.focal_tolerance > 0 \
+        q.threshold = self.options.max_error_px * min(q.gray.shape) / REFERENCE_SHORT_SIDE
+        q.pixels = cell_centers(hc, wc, "colmap").permute(1, 2, 0).reshape(-1, 2).double().numpy()
+        if q.camera is not None or not self.prior:
+            return
+        camera = estimate_focal(q.pixels, q.coords.reshape(-1, 3), q.gray.shape[1], q.gray.shape[0], q.threshold,
+                                self.seed)
+        if camera is None:
+            q.no_focal = ("no camera explains the map's scene coordinates of this photo, so its focal length "
+                          "cannot be estimated: not a view of this map's scene (or too dark or blurred?)")
+            return
+        w, h, f = q.width, q.height, camera.params[0] / q.resize
+        q.no_focal = estimated_focal_problem(f, w, h, self.focal_range)
+        if q.no_focal:  # the map does not read this photo: its dense answer is no answer
+            q.no_focal += ": the map does not recognise this photo (another place, or stretched or cropped?)"
+            return
+        q.camera = camera
+        q.given = q.full_camera = Camera("SIMPLE_PINHOLE", w, h, (f, w / 2, h / 2))
+
+    def _learned_pose(self, q: Query) -> None:
+        """RANSAC-PnP on the map's coordinates (none without a focal length, or with prior=none:
+        features may still find one); and the map's own focal estimate, for its verdicts, readied
+        (computed in place only when asked for) where a given focal length is to be judged."""
+        assert q.coords is not None and q.pixels is not None
+        if q.camera is not None and self.prior and q.intrinsics and self.options.focal_tolerance > 0 \
                 and self.map_judges_focal:  # found where first asked for: the features' verdict mostly decides alone
-            map_focal = Job(estimate_focal, pixels, coords.reshape(-1, 3), camera.width, camera.height, threshold,
-                            self.seed, background=False).result
-        if camera is not None and self.prior:
-            result = solve_pnp(pixels, coords.reshape(-1, 3), camera, max_error_px=threshold,
-                               seed=self.seed, min_inliers=self.options.min_inliers,
-                               backend=self.options.backend)
+            q.map_focal = Job(estimate_focal, q.pixels, q.coords.reshape(-1, 3), q.camera.width, q.camera.height,
+                              q.threshold, self.seed, background=False).result
+        if q.camera is not None and self.prior:
+            q.dense = solve_pnp(q.pixels, q.coords.reshape(-1, 3), q.camera, max_error_px=q.threshold,
+                                seed=self.seed, min_inliers=self.options.min_inliers, backend=self.options.backend)
         else:  # no learned pose (prior=none, or no focal length from the map): features may still find one
-            result = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
-        t3 = time.perf_counter()
-        found_set, global_pairs, retrieved = None, None, Retrieved()
-        if job is not None:  # the features, and (on the worker, while the guided passes run) their matches
-            found_set = job.result()  # to every landmark (retrieved) where a verdict or a fallback needs them
-            if self.prior:  # the mapping photos most like it bound those matches and the fallback: `image_retrieval`
-                retrieved = self._retrieval.retrieve(found_set.feats, self.options.features_retrieval_images)
-            if self.prior and (intrinsics is None or self.options.focal_tolerance > 0):
-                global_pairs = global_match_job(self._landmark_desc, found_set.feats, self.options.features_ratio,
-                                                matching_device(self.device), landmark_bytes=self._landmark_bytes,
-                                                rows=retrieved.landmarks).result
-        # Evidence before verdicts: the learned pose is a hypothesis. No check on it refuses the photo
-        # before the features have had their say; the checks below judge the final answer with the
-        # evidence that produced it.
-        R, t, inliers, iterations, kept = result.R, result.t, result.num_inliers, 0, False
-        path, feature, rejected = "dense", None, ""
-        if result.success and self.refine:
-            assert self.keypoints_xyz is not None
-            ref = refine_pose(pixels, coords.reshape(-1, 3), camera, self.keypoints_xyz, result.R, result.t,
-                              max_error_px=threshold, median_depth=self.median_depth,
-                              options=self.refine_options, backend=self.options.backend,
-                              seed=self.seed, min_inliers=self.options.min_inliers)
-            iterations, kept = ref.iterations, ref.kept
-            if kept:
-                R, t, inliers, path = ref.R, ref.t, ref.final_inliers, "keypoints"
-        if self.landmarks is not None:
-            if full_camera is None:  # COLMAP's prior for a photo without calibration
-                full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
-                given = full_camera
-            assert found_set is not None
-            feature, feature_rejected, full_camera, feature_evidence = self._features(
-                found_set, global_pairs, full_camera, result, intrinsics is not None, intrinsics_source, retrieved)
-            if intrinsics is None and feature.success and not feature_rejected and not feature_evidence.focal_estimated \
-                    and not (camera is not None and result.num_inliers >= self.options.min_confidence * hc * wc):
-                feature_rejected = self._unsupported_focal(full_camera, result.num_inliers, hc * wc, camera is not None)
-            if intrinsics is None and feature.success and not feature_rejected:
-                given = full_camera  # the focal length the features estimated with the pose
-            if feature_rejected == FOCAL_UNOBSERVABLE:
-                feature_rejected = self._focal_without_global_evidence(
-                    result, feature, feature_evidence, pixels, coords, camera, threshold, hc * wc, intrinsics_source,
-                    map_focal)
-                if feature_rejected == FOCAL_UNOBSERVABLE:  # nothing tells: the answer stands, with a doubt
-                    feature_rejected = ""
-                    warnings.append(FOCAL_UNCHECKED if self.map_judges_focal else FOCAL_UNCHECKED_MAP)
-            if feature.success and not feature_rejected:
-                R, t, path = feature.R, feature.t, feature.path
-                if camera is not None:  # the dense support of the final pose, for `confidence`
-                    inliers = int(reprojection_inliers(camera, pixels, coords.reshape(-1, 3), R, t, threshold).sum())
-                rejected = features_alone_verdict(path, feature.inliers, inliers, hc * wc, self.options)
-            elif feature_rejected:
-                rejected = feature_rejected
-        by_features = path in FEATURE_PATHS
-        if result.success and not by_features and not rejected:
-            # the learned pose is the answer (no landmarks, or no feature pose): its own evidence judges it
-            if intrinsics is not None and self.options.focal_tolerance > 0 and not self.map_judges_focal:
-                warnings.append(MAP_DOES_NOT_JUDGE)
-            elif intrinsics is not None and self.options.focal_tolerance > 0:
-                rejected = self._focal_disagreement(pixels, coords, camera, threshold, source=intrinsics_source,
-                                                    map_focal=map_focal)
-            elif intrinsics is None:  # a square-pixel focal estimated: stretched?
-                rejected = stretch_verdict(pixels, coords.reshape(-1, 3), camera, result.R, result.t, threshold)
-            if not rejected and inliers < self.options.min_confidence * hc * wc:
-                # a pose, but one that too few cells agree with: wrong answers look like this
-                rejected = f"confidence {inliers / (hc * wc):.3f} < min_confidence {self.options.min_confidence:g}"
-        t4 = time.perf_counter()
-        seconds = {"preprocess": t1 - t0, "network": t2 - t1, "pnp": t3 - t2, "refine": t4 - t3,
-                   "total": t4 - t0}
-        if feature is not None and feature.verified_seconds is not None:  # SIFT + PnP's matching, part of refine
-            seconds["fallback"] = feature.verified_seconds
-        if (result.success or by_features) and not rejected:
-            rejected = far_camera_verdict(camera_centers(R, t), self._extent())
-        success = (result.success or by_features) and not rejected
-        pose_found = bool(result.success or (feature is not None and feature.success))
-        if not success:
-            R, t = nan_R(), nan_t()
-            if not rejected:  # every failure says why
-                rejected = no_focal or self._no_pose_reason(result, feature, hc * wc)
-        return PoseEstimate(success, R, t, inliers, hc * wc, seconds,
-                            initial_R=result.R.copy() if success and result.success else nan_R(),
-                            initial_t=result.t.copy() if success and result.success else nan_t(),
-                            refine_iterations=iterations, refine_kept=kept or by_features, camera=given,
-                            focal_estimated=intrinsics is None, rejected=rejected,
-                            refine_method=self.options.refine if (self.refine or self.landmarks is not None)
-                            else "none", refine_path=path if success else "",
-                            feature_inliers=feature.inliers if feature is not None else 0,
-                            feature_passes=feature.passes if feature is not None else [],
-                            feature_hypotheses=feature.tried if feature is not None else [],
-                            verified=feature.verified if feature is not None else None,
-                            warnings=warnings, pose_found=pose_found, prior=self.options.prior)
+            q.dense = PnPResult(False, nan_R(), nan_t(), np.zeros(0, bool), 0, 0.0)
+        q.t3 = time.perf_counter()
+        q.R, q.t, q.inliers = q.dense.R, q.dense.t, q.dense.num_inliers  # the answer, unless refinement finds a better
+
+    def _refine_by_keypoints(self, q: Query) -> None:
+        """Keypoint-guided refinement of the learned pose (refine=keypoints, paper §3.2.2)."""
+        assert self.keypoints_xyz is not None and q.dense is not None and q.coords is not None
+        ref = refine_pose(q.pixels, q.coords.reshape(-1, 3), q.camera, self.keypoints_xyz, q.dense.R, q.dense.t,
+                          max_error_px=q.threshold, median_depth=self.median_depth,
+                          options=self.refine_options, backend=self.options.backend,
+                          seed=self.seed, min_inliers=self.options.min_inliers)
+        q.iterations, q.kept = ref.iterations, ref.kept
+        if ref.kept:
+            q.R, q.t, q.inliers, q.path = ref.R, ref.t, ref.final_inliers, "keypoints"
+
+    def _refine_by_features(self, q: Query, found: PhotoFeatures) -> None:
+        """The answer from the photo's features (`FeaturePath.answer`) where the verdicts on it let it
+        stand: a focal length of a photo without intrinsics that something supports, a given one
+        that the evidence does not contradict, support beyond matches by chance."""
+        assert self.features is not None and q.dense is not None and q.coords is not None
+        w, h = q.width, q.height
+        if q.full_camera is None:  # COLMAP's prior for a photo without calibration
+            q.full_camera = Camera("SIMPLE_PINHOLE", w, h, (1.2 * max(w, h), w / 2, h / 2))
+            q.given = q.full_camera
+        feature, rejected, q.full_camera, evidence = self.features.answer(found, q.full_camera, q.dense,
+                                                                          q.intrinsics, q.source)
+        q.feature = feature
+        if not q.intrinsics and feature.success and not rejected and not evidence.focal_estimated \
+                and not (q.camera is not None and q.dense.num_inliers >= self.options.min_confidence * q.cells):
+            rejected = unsupported_focal(q.full_camera, q.dense.num_inliers, q.cells, q.camera is not None,
+                                         self.options)
+        if not q.intrinsics and feature.success and not rejected:
+            q.given = q.full_camera  # the focal length the features estimated with the pose
+        if rejected == FOCAL_UNOBSERVABLE:
+            rejected = self._focal_without_global_evidence(q, feature, evidence)
+            if rejected == FOCAL_UNOBSERVABLE:  # nothing tells: the answer stands, with a doubt
+                rejected = ""
+                q.warnings.append(FOCAL_UNCHECKED if self.map_judges_focal else FOCAL_UNCHECKED_MAP)
+        if feature.success and not rejected:
+            q.R, q.t, q.path = feature.R, feature.t, feature.path
+            if q.camera is not None:  # the dense support of the final pose, for `confidence`
+                q.inliers = int(reprojection_inliers(q.camera, q.pixels, q.coords.reshape(-1, 3), q.R, q.t,
+                                                     q.threshold).sum())
+            q.rejected = features_alone_verdict(q.path, feature.inliers, q.inliers, q.cells, self.options)
+        elif rejected:
+            q.rejected = rejected
+
+    def _dense_verdict(self, q: Query) -> str:
+        """Why the learned pose is no answer ("" when it stands) where it is the answer (no landmarks,
+        or no feature pose): its own evidence judges it."""
+        assert q.dense is not None and q.coords is not None
+        rejected = ""
+        if q.intrinsics and self.options.focal_tolerance > 0 and not self.map_judges_focal:
+            q.warnings.append(MAP_DOES_NOT_JUDGE)
+        elif q.intrinsics and self.options.focal_tolerance > 0:
+            rejected = self._focal_disagreement(q)
+        elif not q.intrinsics:  # a square-pixel focal estimated: stretched?
+            rejected = stretch_verdict(q.pixels, q.coords.reshape(-1, 3), q.camera, q.dense.R, q.dense.t, q.threshold)
+        if not rejected and q.inliers < self.options.min_confidence * q.cells:
+            # a pose, but one that too few cells agree with: wrong answers look like this
+            rejected = f"confidence {q.inliers / q.cells:.3f} < min_confidence {self.options.min_confidence:g}"
+        return rejected
+
+    def _focal_disagreement(self, q: Query, tolerance: float | None = None) -> str:
+        """Why the given focal length cannot be right ("" when it can): the map's scene coordinates
+        imply another one (beyond `tolerance`, default focal_tolerance). A wrong focal length can
+        still explain most cells with a wrong pose (a shallow view trades focal length for
+        distance), so confidence alone cannot catch it. The map's estimate is `q.map_focal`'s where
+        it was readied (`_learned_pose`)."""
+        assert q.camera is not None and q.coords is not None
+        tolerance = self.options.focal_tolerance if tolerance is None else tolerance
+        estimate = q.map_focal() if q.map_focal is not None else estimate_focal(
+            q.pixels, q.coords.reshape(-1, 3), q.camera.width, q.camera.height, q.threshold, self.seed)
+        if estimate is None:
+            return ""  # no opinion: nothing to hold against the given focal length
+        given = float(np.sqrt(q.camera.focal[0] * q.camera.focal[1]))
+        ratio = estimate.params[0] / given
+        if abs(np.log(ratio)) <= np.log1p(tolerance):
+            return ""
+        return focal_reason("the image implies", ratio, tolerance, q.source)
+
+    def _focal_without_global_evidence(self, q: Query, feature: FeatureResult, evidence: QueryEvidence) -> str:
+        """Why the given focal length is wrong ("" when it is right, FOCAL_UNOBSERVABLE when nothing
+        tells) when the matches to every landmark cannot tell, from the next evidence in order: the
+        map's coordinates where they read this photo well (the learned pose agrees with the features' and min_confidence of the
+        cells agree with it); else SIFT + PnP's verified matches (P4Pf); else the map's coordinates
+        where the learned pose at least agrees with the features'. The map judges at a wider
+        tolerance since it is coarse ((1 + tol)^2 - 1: 0.56 at 0.25, so a 2x wrong focal still
+        fails); a photo it cannot read (turned sideways) gives it no say, nor does a map that does
+        not tell its own views' focal lengths within the tolerance (`map_judges_focal`)."""
+        assert self.features is not None and q.dense is not None
+        if not self.map_judges_focal:  # a shallow view of a map that cannot judge: SIFT + PnP's matches
+            return FOCAL_UNOBSERVABLE  # would cost a second and cannot tell either (docs/confidence.md)
+        dense = q.dense
+        agree = bool(self.prior and dense.success and feature.success and q.camera is not None
+                     and poses_agree(dense.R, dense.t, feature.R, feature.t, self.median_depth))
+        wide = (1.0 + self.options.focal_tolerance) ** 2 - 1.0
+        if agree and dense.num_inliers >= self.options.min_confidence * q.cells:
+            return self._focal_disagreement(q, wide)
+        verdict = self.features.focal_verdict(evidence, q.source, verified=True)
+        feature.verified, feature.verified_seconds = evidence.verified_record(), evidence.verified_seconds()
+        if verdict != FOCAL_UNOBSERVABLE:
+            return verdict
+        if agree:
+            return self._focal_disagreement(q, wide)
+        return FOCAL_UNOBSERVABLE  # nothing tells: nothing contradicts the given focal length either
 
     def _extent(self) -> tuple[np.ndarray, float] | None:
         """The map's centre and radius (map_extent) from its landmarks, else its 3D keypoints; once."""
@@ -440,11 +423,3 @@ class Relocalizer(FeatureAnswers, FocalVerdicts):
             xyz = self.landmarks.xyz if self.landmarks is not None else self.keypoints_xyz
             self._map_extent = map_extent(xyz)
         return self._map_extent
-
-    def _no_pose_reason(self, result: PnPResult, feature: FeatureResult | None, cells: int) -> str:
-        """Why neither the map's coordinates nor the features gave a pose."""
-        why = (f"no pose: RANSAC-PnP on the map's scene coordinates found none that min_inliers="
-               f"{self.options.min_inliers} of the {cells} cells agree with ({result.num_inliers} at best)")
-        if feature is not None:
-            why += f", and the photo's features gave none ({feature.why or 'no match to the landmarks'})"
-        return why + ": not a view of this map's scene, or too dark, blurred or featureless?"

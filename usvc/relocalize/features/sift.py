@@ -13,7 +13,8 @@ sees the grey its mapping-side twin saw: COLMAP's the grey COLMAP's image reader
 (`usvc.core.sift_grey`: the sfm stage's SIFT reads the photos through it), OpenCV's the luma
 (as `sfm.extractor=opencv` converts the photos).
 Keypoints use COLMAP's pixel convention (the top-left pixel's centre at (0.5, 0.5)), like every 2D
-point in usvc.
+point in usvc. A query's features are found on the photo resized to the mapping images' short side
+when larger (`find_features`), on the worker thread while the network runs (`feature_job`).
 """
 
 from __future__ import annotations
@@ -30,8 +31,10 @@ import pycolmap
 from usvc.core import opencv_sift
 from usvc.core.device import cuda_index
 from usvc.landmarks.landmark_table import unit_descriptors
-from usvc.relocalize.byte_products import scaled
+from usvc.model.preprocess import resize_to_short_side
+from usvc.relocalize.features.byte_products import scaled
 from usvc.relocalize.options import EXTRACTORS
+from usvc.relocalize.query_cores import Job
 
 log = logging.getLogger(__name__)
 _GPU_LOCKS: defaultdict[int, threading.Lock] = defaultdict(threading.Lock)  # one extraction at a time per GPU
@@ -152,3 +155,29 @@ def extract_sift(gray_u8: np.ndarray, max_features: int, extractor: str | SiftCh
         raise ValueError(f"unknown SIFT extractor {extractor!r}")
     keypoints, unit = opencv_sift.detect(image, max_features)
     return QueryFeatures(opencv_sift.colmap_uv(keypoints), unit)  # its codes: COLMAP's encoding of `unit`
+
+
+@dataclass
+class QueryFeatureSet:
+    """The features of one photo: the grey image they were found in (the photo's, resized to the
+    landmarks' short side when larger) and its keypoints."""
+
+    gray: np.ndarray
+    resized: bool  # whether `gray` is the photo resized (else the photo itself)
+    feats: QueryFeatures
+
+
+def find_features(gray01: np.ndarray, short_side: int, max_keypoints: int,
+                  extractor: str | SiftChoice) -> QueryFeatureSet:
+    """SIFT (`extractor`, and where it runs) on the photo at most `short_side` px on its short side."""
+    resized = min(gray01.shape) > short_side
+    if resized:
+        gray01, _ = resize_to_short_side(gray01, short_side)
+    feats = extract_sift(np.clip(np.rint(gray01 * 255.0), 0, 255).astype(np.uint8), max_keypoints, extractor)
+    return QueryFeatureSet(gray01, resized, feats)
+
+
+def feature_job(gray01: np.ndarray, short_side: int, max_keypoints: int, extractor: str | SiftChoice,
+                background: bool | None = None) -> Job:
+    """`find_features` for one photo, as a `Job`."""
+    return Job(find_features, gray01, short_side, max_keypoints, extractor, background=background)

@@ -14,7 +14,7 @@ import numpy as np
 
 from usvc.core.vlad import vlad
 from usvc.landmarks.landmark_table import Landmarks, image_descriptors, unit_descriptors
-from usvc.relocalize.query_features import QueryFeatures
+from usvc.relocalize.features.sift import QueryFeatures
 
 
 @dataclass(frozen=True)

@@ -13,19 +13,21 @@ import numpy as np
 from usvc.core.absolute_pose import FocalPose, estimate_focal_pose
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.relocalize.byte_products import ByteRows
-from usvc.relocalize.feature_refinement import FeatureMatchOptions, global_matches
-from usvc.relocalize.image_retrieval import Retrieved
+from usvc.relocalize.features.byte_products import ByteRows
+from usvc.relocalize.features.matching import global_matches
+from usvc.relocalize.features.passes import FeatureMatchOptions
+from usvc.relocalize.features.retrieval import Retrieved
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import HeldKeypointDescriptors, VerifiedMatches, verified_matches
 from usvc.relocalize.pnp import reprojection_inliers
-from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import HeldKeypointDescriptors, VerifiedMatches, verified_matches
 
 
 class QueryEvidence:
     """`camera` is the query's at the feature image's size (an assumed focal length is fine: the
     verification tells an essential from a fundamental matrix); `use_global` False (prior=none)
     leaves the global matches out of `unguided`; `global_pairs` gives those matches when they are
-    being found already (`usvc.relocalize.feature_job`); SIFT + PnP's pairs are verified on `opts.threads`."""
+    being found already (on the worker thread: `usvc.relocalize.query_cores.Job`); SIFT + PnP's
+    pairs are verified on `opts.threads`."""
 
     def __init__(self, landmarks: Landmarks, landmark_desc: np.ndarray, observation_desc: list[ByteRows] | None,
                  feats: QueryFeatures, opts: FeatureMatchOptions, camera: Camera, seed: int,

@@ -32,11 +32,11 @@ from scipy.spatial import cKDTree
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import LandmarkObservations, Landmarks
-from usvc.relocalize.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots
-from usvc.relocalize.device_matching import mutual_reductions, two_way_reductions
+from usvc.relocalize.features.byte_products import MASKED, ByteRows, ProductBlocks, angles, dots
+from usvc.relocalize.features.device_matching import mutual_reductions, two_way_reductions
+from usvc.relocalize.features.sift import QueryFeatures
 from usvc.relocalize.pnp import in_image, project_points
 from usvc.relocalize.query_cores import products_on_own_threads
-from usvc.relocalize.query_features import QueryFeatures
 
 log = logging.getLogger(__name__)
 Item = TypeVar("Item")

@@ -1,7 +1,7 @@
 """The descriptor products of refinement by features on a torch device (a GPU), where the
 relocalizer's network runs there: the landmarks x keypoints similarities and their row and column
 reductions, computed on the device, and only the few numbers per row that matching needs brought
-back. On the CPU the relocalizer keeps numpy's products (`feature_refinement`), whose answers the
+back. On the CPU the relocalizer keeps numpy's products (`matching`), whose answers the
 tests and benchmarks pin; these functions compute the same reductions (a test holds them to
 numpy's on the CPU), so a query on a GPU matches as one on the CPU does, up to the last bits of
 the products (a near-tie in the ratio test may fall the other way)."""

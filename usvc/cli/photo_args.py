@@ -126,7 +126,7 @@ def expand_photos(args: list[str]) -> list[tuple[str, Path]]:
 
 
 def output_formats(args: argparse.Namespace) -> list[str]:
-    from usvc.relocalize.exports import FORMATS
+    from usvc.cli.exports import FORMATS
 
     if args.out_dir is None:
         if args.format:

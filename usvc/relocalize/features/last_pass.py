@@ -1,5 +1,5 @@
 """The answer's last pass (`relocalize.features_final`), after refinement by features has chosen
-the evidence that found the photo (`feature_refinement.refine_by_features`): SIFT + PnP's own
+the evidence that found the photo (`path.refine_by_features`): SIFT + PnP's own
 per-image matching around the answer (`verified_matching.pose_checked_matches`), either to
 weight the answer's matches by the mapping images that confirm them (`confirmed`, the default) or
 to replace them (`images`); `guided` keeps the guided passes' pose. SIFT + PnP's own path
@@ -11,12 +11,12 @@ import numpy as np
 
 from usvc.core.scene import Camera
 from usvc.landmarks.landmark_table import Landmarks
-from usvc.relocalize.byte_products import ByteRows
 from usvc.relocalize.counted_refinement import distinct_pairs
-from usvc.relocalize.feature_refinement import VERIFIED_MAX_ERROR_PX, FeatureMatchOptions, FeatureResult, accept
+from usvc.relocalize.features.byte_products import ByteRows
+from usvc.relocalize.features.passes import VERIFIED_MAX_ERROR_PX, FeatureMatchOptions, FeatureResult, accept
+from usvc.relocalize.features.sift import QueryFeatures
+from usvc.relocalize.features.verified_matching import VerifiedMatches, pose_checked_matches
 from usvc.relocalize.pnp import project_points, refine_on_inliers
-from usvc.relocalize.query_features import QueryFeatures
-from usvc.relocalize.verified_matching import VerifiedMatches, pose_checked_matches
 
 # The confirmed pass's pose check and refinement threshold, px at the mapping images' size: twice SIFT
 # + PnP's. The matches it confirms are the guided passes' (accepted at features_max_error_px), from a

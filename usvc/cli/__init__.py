@@ -1,6 +1,10 @@
 """`usvc` command line: build a map from a folder of photos, localize photos against a map (and
 export the poses), and rebuild the shipped encoders."""
 
+# The localize command is `localize` (its photos' arguments `photo_args`, their decoding ahead
+# `photo_prefetch`, its files `exports`); `python -m usvc.cli` runs `__main__`. This docstring is
+# the parser's description (`usvc --help`).
+
 from __future__ import annotations
 
 import argparse
@@ -8,27 +12,15 @@ import importlib.metadata
 import json
 import logging
 import sys
-from dataclasses import fields, replace
+from dataclasses import fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
+from usvc.cli.localize import localize
 from usvc.core.errors import UsvcError
 from usvc.core.precision import PRECISIONS
 from usvc.pipeline import threads
 from usvc.pipeline.logs import quiet_third_party
-from usvc.relocalize.options import FINAL, MAX_ERROR_PX, PRIORS, REFERENCE_SHORT_SIDE, REFINE, RelocalizeOptions
-from usvc.relocalize.photo_args import (
-    UnreadablePhoto,
-    expand_photos,
-    output_formats,
-    photo_camera,
-    split_camera,
-)
-
-if TYPE_CHECKING:
-    from usvc.core.scene import Camera
-
-log = logging.getLogger("usvc")
+from usvc.relocalize.options import FINAL, PRIORS, REFINE, RelocalizeOptions
 
 
 def _pretrain(args: argparse.Namespace) -> int:
@@ -87,133 +79,6 @@ def _version() -> str:
         import usvc
 
         return str(getattr(usvc, "__version__", "unknown"))
-
-
-def _localize(args: argparse.Namespace) -> int:
-    """Localize each photo.
-
-    Flags, photo paths, headers, intrinsics and --out-dir's writability are checked before the
-    map is loaded, so a typo fails in milliseconds, with one line on stderr (exit 1), rather than
-    after the network is built. A photo that is unreadable (a header that cannot be read, a
-    decompression bomb, a truncated JPEG) gets its own record with "error" and the others go on;
-    the exit status is then 1 (when no photo can be read at all, that is the one error line).
-    --out-dir files are written only at the end, each atomically.
-    """
-    from usvc.core.images import read_photo
-    from usvc.relocalize.exports import Posed, check_names, export
-    from usvc.relocalize.photo_batch import check_workers, in_order, threads_per_query
-    from usvc.relocalize.photo_prefetch import decoded_ahead
-
-    camera = None
-    photo_args = list(args.photos)
-    if args.camera is not None:
-        model, params, swallowed = split_camera(args.camera)
-        camera, photo_args = (model, params), swallowed + photo_args
-    formats = output_formats(args)
-    photos = expand_photos(photo_args)
-    if formats:
-        check_names(formats, [n for n, _ in photos], [p for _, p in photos])
-    cameras: list[tuple[Camera | None, str, str] | UnreadablePhoto] = []
-    for name, path in photos:
-        try:
-            cameras.append(photo_camera(args, camera, name, path))
-        except UnreadablePhoto as err:  # that photo's failure; the others go on
-            cameras.append(err)
-    unreadable = [c for c in cameras if isinstance(c, UnreadablePhoto)]
-    if len(unreadable) == len(photos):
-        raise UsvcError(str(unreadable[0]) if len(photos) == 1 else
-                        f"none of the {len(photos)} photos can be read; the first: {unreadable[0]}")
-    if not 0.0 < args.max_error_px <= MAX_ERROR_PX:
-        raise UsvcError(f"--max-error-px {args.max_error_px:g}: must be in (0, {MAX_ERROR_PX:g}] (px at a "
-                        f"{REFERENCE_SHORT_SIDE} px short side; larger thresholds accept any pose)")
-
-    from tqdm import tqdm
-
-    from usvc.relocalize.query_input import check_device
-    from usvc.relocalize.relocalizer import Relocalizer
-
-    try:
-        check_workers(args.workers)
-    except UsvcError:
-        raise UsvcError(f"--workers {args.workers}: must be a whole number >= 1") from None
-    # several photos at a time: the threads are shared among them (each query gets threads // workers)
-    threads.apply(threads_per_query(args.threads, args.workers))
-    device = check_device(args.device)
-    refine = "none" if args.no_refine else args.refine
-    options = RelocalizeOptions(backend=args.backend, max_error_px=args.max_error_px, refine=refine,
-                                prior=args.prior, features_final=args.final, precision=args.precision)
-    if args.min_confidence is not None:
-        if not 0.0 <= args.min_confidence <= 1.0:
-            raise UsvcError(f"--min-confidence {args.min_confidence:g}: must be in [0, 1]")
-        options = replace(options, min_confidence=args.min_confidence)
-    if args.focal_tolerance is not None:
-        if args.focal_tolerance < 0:
-            raise UsvcError(f"--focal-tolerance {args.focal_tolerance:g}: must be >= 0 (0: no check)")
-        options = replace(options, focal_tolerance=args.focal_tolerance)
-    relocalizer = Relocalizer(args.map, args.encoder_weights, options, device=device, landmarks=args.landmarks)
-    records: list[dict[str, Any]] = []
-    posed: list[Posed] = []
-    bar = tqdm(total=len(photos), desc="localize", unit="photo", file=sys.stderr,
-               disable=len(photos) < 2 or not sys.stderr.isatty())
-    errors = 0
-    readable = [None if isinstance(c, UnreadablePhoto) else p for (_, p), c in zip(photos, cameras)]
-    # one photo at a time: the next one decoded meanwhile; several: each query decodes its own
-    decoded = decoded_ahead(readable) if args.workers == 1 else iter([None] * len(photos))
-
-    def answer(item: tuple) -> Any:
-        """The photo's estimate, or the UsvcError that is its failure (one unreadable photo is that
-        photo's failure, not the end of the others')."""
-        (name, path), found, photo = item
-        try:
-            if isinstance(found, UnreadablePhoto):
-                raise found
-            cam, source, note = found
-            # read as the relocalizer reads a path (EXIF orientation applied, huge JPEGs reduced)
-            image = photo.result() if photo is not None else read_photo(path)
-            return relocalizer.localize(image, cam, **({"intrinsics_source": note} if note else {}))
-        except UsvcError as err:
-            return err
-
-    if args.processes and args.workers > 1:  # each process reads its photos as answer() reads them
-        from usvc.relocalize.photo_processes import in_processes
-
-        work = (found if isinstance(found, UnreadablePhoto) else
-                (path, found[0], {"intrinsics_source": found[2]} if found[2] else {})
-                for (_, path), found in zip(photos, cameras))
-        estimates = in_processes(Relocalizer, relocalizer.args, work, args.workers,
-                                 threads_per_query(args.threads, args.workers), errors="return")
-    else:
-        estimates = in_order(answer, zip(photos, cameras, decoded), args.workers)
-    for ((name, path), found), estimate in zip(zip(photos, cameras), estimates):
-        bar.update()
-        if isinstance(estimate, UsvcError):
-            errors += 1
-            log.error("%s: %s", name, estimate)
-            record = {"name": name, "success": False, "error": str(estimate)}
-            records.append(record)
-            if not args.json_list:
-                tqdm.write(json.dumps(record), file=sys.stdout)
-                sys.stdout.flush()
-            continue
-        cam, source, note = found
-        record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
-        if source == "exif" and record.get("rejected", "").startswith(note):
-            record["rejected"] += "; --no-exif ignores EXIF focal lengths"
-        records.append(record)
-        if estimate.success:
-            used = estimate.camera or cam
-            if used is None:
-                raise UsvcError(f"{name}: the relocalizer returned a pose without a camera")
-            posed.append(Posed(name, path, used, estimate.R, estimate.t))
-        if not args.json_list:
-            tqdm.write(json.dumps(record), file=sys.stdout)
-            sys.stdout.flush()
-    bar.close()
-    if formats:
-        export(Path(args.out_dir), formats, records, posed)
-    if args.json_list:
-        print(json.dumps(records, indent=2))
-    return 1 if errors else 0  # every photo has its record; the status says some could not be read
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -311,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "nerfstudio (transforms.json); failed photos are only in queries.jsonl")
     loc.add_argument("photos", nargs="*", metavar="PHOTO", help="image files and/or folders of images")
     # Library INFO logs (map/encoder loaded) would bury the JSON and the one-line errors.
-    loc.set_defaults(run=_localize, log_level=logging.WARNING)
+    loc.set_defaults(run=localize, log_level=logging.WARNING)
     return parser
 
 
@@ -334,7 +199,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # output files are written atomically, at the end
         print(f"usvc {args.command}: interrupted, nothing written", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())
