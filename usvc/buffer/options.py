@@ -31,7 +31,7 @@ class BufferOptions:
     keypoint_obs_per_view: int = 1024  # keypoint tuples (k, d_k, R_i, t_i, u_obs) kept per augmented view; 0 = all
     depth_visibility_tol: float = 0.05  # depth maps only: a keypoint off its track counts as seen where |depth - z| < tol * z
     rendered_views: bool = False  # add the render stage's Gaussian-splatting views (set by method=multiview_gs)
-    holdout_every: int = 0  # withhold every k-th mapping image from training (a validation split: holdout.h5 for train.validate_every, benchmarks/diagnose_map.py); 0 = none
+    holdout_every: int = 0  # withhold every k-th mapping image from training (a validation split: holdout.h5 for train.validate_every, `benchmarks.accuracy diagnose-map`); 0 = none
     precision: str = "auto"  # the encoder's products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:

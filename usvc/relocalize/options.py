@@ -39,7 +39,7 @@ def refine_problems(opts: Any, prefix: str = "") -> list[str]:
 class RelocalizeOptions:
     """Relocalization: query -> dense scene coordinates -> RANSAC-PnP, then refinement."""
 
-    backend: str = "opencv"  # RANSAC-PnP solver of the learned pose: opencv | pycolmap | poselib (the default chosen by benchmarks/pnp_solvers.py)
+    backend: str = "opencv"  # RANSAC-PnP solver of the learned pose: opencv | pycolmap | poselib (the default chosen by `python -m benchmarks.accuracy pnp-solvers`)
     max_error_px: float = 10.0  # RANSAC inlier threshold in px of a 480 px short side (ACE's), scaled to the map's working short side
     min_inliers: int = 10  # fewer inliers than this is a failure
     min_confidence: float = 0.1  # answers whose inlier fraction of the cells is lower are failures (docs/confidence.md)

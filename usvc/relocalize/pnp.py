@@ -7,7 +7,7 @@ as COLMAP's) and "opencv" (USAC with P3P, then Levenberg–Marquardt on the inli
 inliers until the set stops growing, as ACE does). All take pixel coordinates in COLMAP's
 convention (top-left pixel centre at (0.5, 0.5)) and return world-to-camera (R, t) in OpenCV axes.
 
-"opencv" is the default: on `benchmarks/pnp_solvers.py` (4800 correspondences at 640x480,
+"opencv" is the default: on `python -m benchmarks.accuracy pnp-solvers` (4800 correspondences at 640x480,
 30-95 % outliers) it was as accurate or slightly more accurate at every outlier ratio and
 2-20x faster than pycolmap's LO-RANSAC. Refinement by features' passes, whose matches are nearly
 all inliers, take "poselib" (`relocalize.features_pnp`): about half COLMAP's time there.
@@ -143,7 +143,7 @@ def _solve_opencv(
     cv2.setRNGSeed(seed)
     # USAC (uniform sampling, MSAC score, inner local optimisation) rather than the classic
     # solvePnPRansac: the classic loop samples 4 points per P3P hypothesis and ran ~40x slower
-    # at 85 % outliers in benchmarks/pnp_solvers.py for the same accuracy.
+    # at 85 % outliers in `benchmarks.accuracy pnp-solvers` for the same accuracy.
     params = cv2.UsacParams()
     params.threshold = float(max_error_px)
     params.confidence = RANSAC_CONFIDENCE

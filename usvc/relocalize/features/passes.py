@@ -28,7 +28,7 @@ from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.pnp import in_image, project_points, solve_pnp
 
 # SIFT + PnP's inlier threshold for a query's pose, px at the mapping images' size: the value with
-# which benchmarks/baseline_sift.py registers queries (usvc.sfm.posing.QUERY_MAX_ERROR_PX; a test
+# which `benchmarks.accuracy baseline-sift` registers queries (usvc.sfm.posing.QUERY_MAX_ERROR_PX; a test
 # keeps the two equal without the query step importing the SfM step)
 VERIFIED_MAX_ERROR_PX = 4.0
 # The fewest LO-RANSAC trials of a feature PnP (COLMAP's default floor: 100). Guided matches are

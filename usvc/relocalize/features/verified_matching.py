@@ -11,7 +11,7 @@ mapping image, cross-checked as COLMAP cross-checks (the ratio test on both side
 observations, mutual, for older landmarks. Verification is COLMAP's own
 (`pycolmap.estimate_two_view_geometry`: essential, fundamental or homography matrix, whichever
 explains the pair, at least MIN_PAIR_INLIERS inliers; at most MAX_PAIR_TRIALS RANSAC trials), as
-the sfm stage and `benchmarks/baseline_sift.py` match and verify. A keypoint matched in several
+the sfm stage and `python -m benchmarks.accuracy baseline-sift` match and verify. A keypoint matched in several
 mapping images gives one correspondence per image, as in the baseline. The correspondences do not
 depend on the query's intrinsics beyond verification, so they also judge a given focal length (P4Pf).
 """
