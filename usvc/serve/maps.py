@@ -72,7 +72,7 @@ class MapRegistry:
         return served
 
     def load(self, name: str, path: str | Path, options: RelocalizeOptions | None = None, device: str = "auto",
-             make: Callable[..., Relocalizer] = Relocalizer) -> ServedMap:
+             make: Callable[..., Relocalizer] | None = None) -> ServedMap:
         check_name(name)
         if name in self._maps:
             raise UsvcError(f"map name {name!r} is given twice")
@@ -80,7 +80,7 @@ class MapRegistry:
         if not path.is_file():
             raise UsvcError(f"map {name}: {path} is not a file (a map.pt the train stage wrote)")
         log.info("loading map %s from %s", name, path)
-        return self.add(name, make(path, None, options, device=device))
+        return self.add(name, (make or Relocalizer)(path, None, options, device=device))
 
     def get(self, name: str) -> ServedMap | None:
         return self._maps.get(name) if isinstance(name, str) else None
