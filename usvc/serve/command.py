@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                      help="seconds the request body may take to arrive (408 after)")
     srv.add_argument("--device", default="auto", help="torch device: auto | cpu | cuda | cuda:N")
     srv.add_argument("--precision", choices=PRECISIONS, default="auto")
-    srv.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
+    srv.add_argument("--log-level", dest="server_log_level", default="info",
+                     choices=("critical", "error", "warning", "info", "debug"), help="uvicorn's log level")
     srv.set_defaults(run=run)
     return srv
 
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 
     app = create_app(registry, options)
     log.info("serving %s on http://%s:%d (docs at /docs)", ", ".join(registry.names()), args.host, args.port)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, access_log=args.log_level == "debug",
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.server_log_level, access_log=args.server_log_level == "debug",
                 timeout_keep_alive=5, server_header=False, proxy_headers=False)
     return 0
 
