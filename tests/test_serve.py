@@ -448,3 +448,27 @@ def test_usvc_serve_starts_uvicorn_with_the_maps(tiny_map: tuple[Path, Path], tm
         assert main(["serve", *args]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("usvc serve: error: ") and message in err[0], err
+
+
+# ------------------------------------------------------------------ usvc.client
+
+def test_the_client(client: TestClient, photo_file: Path, tiny_map: tuple[Path, Path],
+                    capsys: pytest.CaptureFixture[str]) -> None:
+    from usvc.client import Client, ServeError
+
+    c = Client(http=client)
+    assert c.health()["status"] == "ok" and [m["name"] for m in c.maps()] == ["tiny"]
+    record = c.localize("tiny", photo_file, focal=130)
+    assert without_timing(record) == {**without_timing(cli_record(tiny_map, capsys, "--focal", "130",
+                                                                  str(photo_file))), "name": "photo.png"}
+    assert c.localize("tiny", photo_file.read_bytes(), intrinsics=(130, 130, 80, 60))["intrinsics_source"] == \
+        "intrinsics"
+    with pytest.raises(ServeError) as err:
+        c.localize("tiny", photo_file, focal=1e9)
+    assert err.value.status == 422 and err.value.reason == "pose_refused" and err.value.record["success"] is False
+    with pytest.raises(ServeError) as err:
+        c.localize("bird", photo_file)
+    assert err.value.status == 404 and err.value.reason == "unknown_map"
+    with pytest.raises(ServeError) as err:
+        c.localize("../tiny", photo_file)  # quoted: no route, no file
+    assert err.value.status == 404
