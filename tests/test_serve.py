@@ -156,6 +156,12 @@ def test_the_answer_is_the_commands_record(client: TestClient, served: Any, tiny
         assert record["intrinsics_source"] == source and record["success"]
         assert without_timing(record) == {**without_timing(cli_record(tiny_map, capsys, *flags, str(photo_file))),
                                           "name": "photo.png"}
+    # a refused pose: 422, its reason, and the record the command writes for it
+    r = post_photo(client, data, focal=1e9)
+    assert r.status_code == 422
+    refused = cli_record(tiny_map, capsys, "--focal", "1e9", str(photo_file))
+    assert not refused["success"] and r.json()["error"] == refused["rejected"]
+    assert without_timing(r.json()["record"]) == {**without_timing(refused), "name": "photo.png"}
     record = client.post(URL, json={"photo": base64.b64encode(data).decode(),
                                     "camera": {"model": "PINHOLE", "params": [130, 130, 80, 60]}}).json()
     assert record["success"] and record["name"] == "photo" and record["intrinsics_source"] == "camera"
@@ -416,9 +422,11 @@ def test_map_names_and_folders(tmp_path: Path) -> None:
     (tmp_path / "bird.pt").write_bytes(b"x")
     (tmp_path / "notes.txt").write_text("x")
     assert [n for n, _ in maps_in_folder(tmp_path)] == ["bird", "office"]
+    (tmp_path / "empty").mkdir()
     with pytest.raises(UsvcError, match="no NAME/map.pt"):
-        maps_in_folder(tmp_path / "office" / "map" / "empty") if (tmp_path / "office" / "map" / "empty").mkdir() \
-            is None else None
+        maps_in_folder(tmp_path / "empty")
+    with pytest.raises(UsvcError, match="not a folder"):
+        maps_in_folder(tmp_path / "bird.pt")
 
 
 def test_usvc_serve_starts_uvicorn_with_the_maps(tiny_map: tuple[Path, Path], tmp_path: Path,
