@@ -9,4 +9,5 @@ SUBCOMMANDS = {  # subcommand: (module, what it measures)
     "before-after": ("before_after", "the default query step of a git revision against this tree's"),
     "cli": ("cli", "`usvc localize` as a user runs it, one command per photo and one for all"),
     "folder": ("folder", "photos per second for a folder of photos, one at a time and several at once"),
+    "serve-load": ("serve_load", "`usvc serve` under N concurrent clients on loopback: throughput, latency, memory"),
 }

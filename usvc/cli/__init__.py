@@ -177,6 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("photos", nargs="*", metavar="PHOTO", help="image files and/or folders of images")
     # Library INFO logs (map/encoder loaded) would bury the JSON and the one-line errors.
     loc.set_defaults(run=localize, log_level=logging.WARNING)
+
+    from usvc.serve.command import add_parser as add_serve_parser
+
+    add_serve_parser(sub)  # `usvc serve`: usvc/serve/
     return parser
 
 
