@@ -1,6 +1,7 @@
 """usvc's benchmarks: four families of questions, each one entry point with a subcommand per question.
 
-    python -m benchmarks.query SUBCOMMAND ...     # what a query costs: speed, models, before-after, cli, folder
+    python -m benchmarks.query SUBCOMMAND ...     # what a query costs: speed, models, before-after, cli, folder,
+                                                  #   serve-load
     python -m benchmarks.train SUBCOMMAND ...     # what training costs: throughput, profile, bundle-cost,
                                                   #   side-by-side, busy-machine, splat-render
     python -m benchmarks.pipeline SUBCOMMAND ...  # whole pipelines: time, fresh, device, scaling

@@ -13,7 +13,8 @@ import pytest
 from PIL import Image, features
 
 from usvc.cli import main
-from usvc.cli.photo_args import UnreadablePhoto, expand_photos, folder_photos, folder_suffixes, photo_camera
+from usvc.cli.photo_args import expand_photos, folder_photos, folder_suffixes
+from usvc.relocalize.photo_camera import UnreadablePhoto, photo_camera
 from usvc.core.errors import SceneError, UsvcError
 from usvc.core.images import NO_HEIF_DECODER, heif_decoder, read_photo
 

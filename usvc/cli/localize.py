@@ -14,7 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from usvc.cli.photo_args import UnreadablePhoto, expand_photos, output_formats, photo_camera, split_camera
+from usvc.cli.photo_args import expand_photos, output_formats
+from usvc.relocalize.photo_camera import UnreadablePhoto, photo_camera, split_camera
 from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
 from usvc.relocalize.options import MAX_ERROR_PX, REFERENCE_SHORT_SIDE, RelocalizeOptions

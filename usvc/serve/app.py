@@ -24,7 +24,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Res
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from usvc.serve import requests
+import usvc.serve.requests as requests
 from usvc.serve.errors import ApiError, status_reason
 from usvc.serve.maps import MapRegistry
 from usvc.serve.metrics import Metrics

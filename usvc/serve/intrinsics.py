@@ -1,9 +1,8 @@
 """A request's intrinsics, read as `usvc localize` reads its flags (focal, fx fy cx cy, a COLMAP
 camera model, else EXIF unless no_exif, else estimated with the pose).
 
-The one module of usvc.serve that imports what `usvc localize` uses from usvc.relocalize beyond
-the Relocalizer (photo_args: the camera of each photo and its source), so that a move of those
-modules is fixed here alone.
+The camera of each photo and its source come from `usvc.relocalize.photo_camera`, as for
+`usvc localize`.
 """
 
 from __future__ import annotations
@@ -15,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from usvc.core.errors import UsvcError
-from usvc.cli.photo_args import CAMERA_PARAMS, UnreadablePhoto, photo_camera, split_camera
+from usvc.relocalize.photo_camera import CAMERA_PARAMS, UnreadablePhoto, photo_camera, split_camera
 from usvc.serve.errors import ApiError
 
 if TYPE_CHECKING:
