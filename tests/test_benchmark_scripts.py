@@ -321,6 +321,7 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
         assert set(s["stages"]) >= {"prepare", "sfm", "buffer", "train", "landmarks", "relocalize", "metrics"}
         assert all(v["seconds"] > 0 for v in s["stages"].values())
         assert s["map_bytes"] > 0 and s["landmarks_bytes"] > 0 and s["query_ms_median"] > 0
+        assert s["query_latency_ms"]["total"] >= s["query_latency_ms"]["network"] > 0
         assert s["queries"] == 3 and 0 <= s["share_without_fallback"] <= 1 and s["train_steps"] == 20
         assert "acc_5cm_5deg" in s["metrics"] and "initial_acc_5cm_5deg" in s["metrics"]
     assert (tmp_path / "reports" / "pipeline_scaling_smoke.png").stat().st_size > 10_000

@@ -15,7 +15,9 @@ as `dvc repro` runs it (`python -m stages.<stage> scene=mini scene.name=room<N> 
 Writes `results/benchmarks/pipeline_scaling[_<scene>].json` (<scene> with --scene): per size, every
 stage's wall seconds (interpreter start included) and peak resident memory (what the stage records
 about itself), bytes on disk of the map and of the landmarks, the median and mean seconds a query
-(the relocalize stage's per-query timings), the share of queries answered by the learned pose
+in the relocalize stage (two queries side by side, its `query_workers`) and the median of one query
+at a time (`query_latency_ms`: `benchmarks.query speed`, photo in and pose out, with its parts),
+the share of queries answered by the learned pose
 without the fallback, and the metrics (`acc_*` of the final answer, `initial_acc_*` of the learned
 pose, with the training fit). With more than one size, a PNG of the same name beside it plots seconds per
 stage, query milliseconds, bytes and peak memory against the number of photos, log-log. Run it on
@@ -30,6 +32,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -87,6 +90,25 @@ def query_figures(paths: ScenePaths) -> dict:
     return out
 
 
+def query_latency(scene_dir: Path, env: dict[str, str], checkout: Path) -> dict:
+    """One query at a time on the scene's own map, photo in and pose out (`benchmarks.query speed
+    --refine features`, in a process of its own, on the stages' threads): the median milliseconds
+    of the whole query and of its parts over the queries, after two warm-up ones. The relocalize
+    stage's own timings are of two queries side by side (its `query_workers`): throughput, not the
+    wait of one photo."""
+    with tempfile.TemporaryDirectory() as reports:
+        proc = subprocess.run([sys.executable, "-m", "benchmarks.query", "speed", "--scene-dir", str(scene_dir),
+                               "--refine", "features"], cwd=checkout,  # its usvc, these benchmarks where it has none
+                              env={**env, "USVC_BENCHMARK_DIR": reports,
+                                   "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))},
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if proc.returncode != 0:
+            tail = proc.stderr.strip().splitlines()[-1:] or ["(no output)"]
+            raise SystemExit(f"query latency of {scene_dir} failed (exit {proc.returncode}): {tail[0]}")
+        report = _json(next(Path(reports).glob("*.json")))
+    return {k: round(1000 * v, 1) for k, v in report["seconds_median"]["features"].items()}
+
+
 def measure(scene_args: list[str], name: str, overrides: list[str], threads: int, checkout: Path) -> dict:
     """Every stage of one scene, in order: seconds, peak memory, bytes, query figures and metrics."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
@@ -117,6 +139,7 @@ def measure(scene_args: list[str], name: str, overrides: list[str], threads: int
         "train_steps": train.get("iterations") or train.get("steps"),
         "train_fit": {k: v for k, v in train.items() if "reprojection" in k or "median_px" in k or k.endswith("_px")},
         **query_figures(paths),
+        "query_latency_ms": query_latency(paths.scene_dir, env, checkout),
         "metrics": {k: v for k, v in metrics.items() if k.startswith(("acc_", "initial_acc_", "median_", "initial_median_"))
                     or k in ("n_queries", "n_failed")},
     }
@@ -135,8 +158,10 @@ def plot(rows: list[dict], out: Path) -> None:
         axes[0].plot(n, [max(r["stages"][stage]["seconds"], 1e-2) for r in rows], marker="o", label=stage)
     axes[0].set_title("seconds per stage")
     axes[0].legend(fontsize=7)
-    axes[1].plot(n, [r.get("query_ms_median") or float("nan") for r in rows], marker="o", label="median")
-    axes[1].plot(n, [r.get("query_ms_mean") or float("nan") for r in rows], marker="o", label="mean")
+    axes[1].plot(n, [r.get("query_ms_median") or float("nan") for r in rows], marker="o", label="stage, median")
+    axes[1].plot(n, [r.get("query_ms_mean") or float("nan") for r in rows], marker="o", label="stage, mean")
+    axes[1].plot(n, [(r.get("query_latency_ms") or {}).get("total") or float("nan") for r in rows], marker="o",
+                 label="one at a time, median")
     axes[1].set_title("ms a query")
     axes[1].legend(fontsize=7)
     axes[2].plot(n, [r["map_bytes"] / 1e6 for r in rows], marker="o", label="map")
