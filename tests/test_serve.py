@@ -23,8 +23,8 @@ import cv2
 import numpy as np
 import pytest
 from PIL import Image
-from test_localize_bad_input import CENTRED, exactly
-from test_relocalizer import make_map, photo
+from test_localize_bad_input import CENTRED, exactly, photo_file, tiny_map  # noqa: F401 (fixtures)
+from test_relocalizer import photo
 
 pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
@@ -42,18 +42,6 @@ pytestmark = [pytest.mark.precision, pytest.mark.filterwarnings("ignore::Depreca
 
 URL = "/v1/maps/tiny/localize"
 TOKEN = "s3cret-token"
-
-
-@pytest.fixture(scope="module")
-def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    return make_map(tmp_path_factory.mktemp("servemap"))
-
-
-@pytest.fixture(scope="module")
-def photo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("servephotos") / "photo.png"
-    cv2.imwrite(str(path), photo(160, 120))
-    return path
 
 
 def app_with(tiny_map: tuple[Path, Path], **options: Any) -> tuple[Any, Relocalizer]:
