@@ -1,6 +1,6 @@
 """Load on `usvc serve` over loopback: N concurrent clients send real query photos (a 503 waits its Retry-After) (multipart, each
 with its intrinsics from the scene, as an app that knows its camera would) for --seconds or
---requests; reports throughput, p50/p95/p99 latency, answers by status, and the server's peak
+--requests; reports throughput, p50/p95/p99 latency (and p50/p99 of the 503s), answers by status, and the server's peak
 memory (VmHWM, and its RSS at the start and the end: flat memory over a long run). The server is
 started here (`usvc serve` on a free port, --workers/--queue/--threads as given) unless --url
 names a running one. Writes results/benchmarks/query_serve_load_<scene>_c<clients>_w<workers>.json.
@@ -94,6 +94,7 @@ def run_load(url: str, map_name: str, photos: list, clients: int, seconds: float
 
     payloads = [(p.name, p.read_bytes(), " ".join(repr(float(v)) for v in k)) for p, k in photos]
     latencies: list[float] = []
+    busy: list[float] = []  # how long a 503 took to come back
     statuses: Counter[str] = Counter()
     lock = threading.Lock()
     sent = [0]
@@ -125,6 +126,8 @@ def run_load(url: str, map_name: str, photos: list, clients: int, seconds: float
                     statuses[status] += 1
                     if status == "200":
                         latencies.append(dt)
+                    elif status == "503":
+                        busy.append(dt)
 
     t0 = time.perf_counter()
     threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
@@ -138,6 +141,8 @@ def run_load(url: str, map_name: str, photos: list, clients: int, seconds: float
             "throughput_per_s": round(ok / wall, 3) if wall else None,
             "latency_s": {f"p{q}": None if percentile(latencies, q) is None else round(percentile(latencies, q), 4)
                           for q in (50, 95, 99)},
+            "busy_latency_s": {f"p{q}": None if percentile(busy, q) is None else round(percentile(busy, q), 4)
+                               for q in (50, 99)},
             "statuses": dict(sorted(statuses.items())),
             "errors": sum(n for s, n in statuses.items() if s != "200")}
 
