@@ -24,6 +24,7 @@ from pathlib import Path
 
 
 from benchmarks._report import report_name, scene_of, write_report
+from usvc.pipeline.paths import ScenePaths
 
 
 def query_files(scene_dir: Path) -> list[tuple[Path, tuple[float, float, float, float]]]:
@@ -164,10 +165,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-
     scene = scene_of(args.scene_dir)
     photos = query_files(args.scene_dir)[:args.photos]
-    proc, url = (None, args.url) if args.url else start_server(args, scene, args.scene_dir / "map" / "map.pt")
+    proc, url = (None, args.url) if args.url else start_server(args, scene, ScenePaths.of_scene_dir(args.scene_dir).map_file)
     runs = []
     try:
         run_load(url, scene, photos[:1], 1, 0, 1, args.timeout)  # warm-up: one request

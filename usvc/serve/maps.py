@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from usvc.core.artifact_names import MAP_PT
 from usvc.core.errors import UsvcError
 from usvc.relocalize.relocalizer import Relocalizer, RelocalizeOptions
 
 log = logging.getLogger(__name__)
 
 NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
-MAP_FILE = "map.pt"
 
 
 def check_name(name: str) -> str:
@@ -112,7 +112,7 @@ def maps_in_folder(folder: str | Path) -> list[tuple[str, Path]]:
     found: list[tuple[str, Path]] = []
     for entry in sorted(folder.iterdir(), key=lambda p: p.name):
         if entry.is_dir():
-            for candidate in (entry / MAP_FILE, entry / "map" / MAP_FILE):
+            for candidate in (entry / MAP_PT, entry / "map" / MAP_PT):
                 if candidate.is_file():
                     found.append((entry.name, candidate))
                     break
