@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from usvc.cli.photo_args import expand_photos, output_formats
-from usvc.relocalize.photo_camera import UnreadablePhoto, photo_camera, split_camera
+from usvc.relocalize.photo_camera import UnreadablePhoto, answer_record, photo_camera, split_camera
 from usvc.core.errors import UsvcError
 from usvc.pipeline import threads
 from usvc.relocalize.options import MAX_ERROR_PX, REFERENCE_SHORT_SIDE, RelocalizeOptions
@@ -166,9 +166,7 @@ def _report(args: argparse.Namespace, photos: list[tuple[str, Path]], cameras: l
             record = {"name": name, "success": False, "error": str(estimate)}
         else:
             cam, source, note = found
-            record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
-            if source == "exif" and record.get("rejected", "").startswith(note):
-                record["rejected"] += "; --no-exif ignores EXIF focal lengths"
+            record = answer_record(name, estimate, source, note)
             if estimate.success:
                 used = estimate.camera or cam
                 if used is None:

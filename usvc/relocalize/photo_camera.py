@@ -13,6 +13,7 @@ from usvc.core.errors import SceneError, UsvcError
 
 if TYPE_CHECKING:
     from usvc.core.scene import Camera
+    from usvc.relocalize.pose_estimate import PoseEstimate
 
 CAMERA_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
                  "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
@@ -106,3 +107,13 @@ def photo_camera(args: argparse.Namespace, camera: tuple[str, tuple[float, ...]]
         raise UsvcError(f"{flag}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image {name}: "
                         "wrong image size for these intrinsics?")
     return cam, source, note
+
+
+def answer_record(name: str, estimate: PoseEstimate, source: str, note: str) -> dict:
+    """The record `usvc localize --format jsonl` writes for a photo (and `usvc serve` answers): its
+    name, the estimate, and where its intrinsics came from (`photo_camera`'s source); a refusal
+    that the EXIF focal length caused says how to do without it."""
+    record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
+    if source == "exif" and record.get("rejected", "").startswith(note):
+        record["rejected"] += "; --no-exif ignores EXIF focal lengths"
+    return record

@@ -21,6 +21,7 @@ from PIL import Image, UnidentifiedImageError
 
 from usvc.core.errors import UsvcError
 from usvc.core.images import read_photo
+from usvc.relocalize.photo_camera import answer_record
 from usvc.relocalize.relocalizer import Relocalizer
 from usvc.serve.errors import ApiError
 from usvc.serve.intrinsics import PhotoIntrinsics, UnreadablePhoto, camera_of, plain
@@ -86,9 +87,6 @@ def localize_photo(relocalizer: Relocalizer, data: bytes, suffix: str, given: Ph
             message = clean(str(err))
             about_camera = cam is not None and any(w in message.lower() for w in INTRINSICS_WORDS)
             raise ApiError("bad_intrinsics" if about_camera else "bad_photo", message) from None
-        record = {"name": name, **estimate.to_json(), "intrinsics_source": source}
-        if source == "exif" and record.get("rejected", "").startswith(note):  # as the command says it
-            record["rejected"] += "; --no-exif ignores EXIF focal lengths"  # the command's words, bit for bit
-        return record
+        return answer_record(name, estimate, source, note)
     finally:
         path.unlink(missing_ok=True)
