@@ -2,7 +2,8 @@
 # One call on a GPU machine that measures usvc's GPU path: the CUDA tests, the bundled scene from
 # scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
 # training step's profile), a 640 x 480 query, a folder of photos (worker threads and worker
-# processes), and the training step at a larger batch; with --real NAME, a real scene's every stage
+# processes), `usvc serve` under load (640 x 480 photos, 1 and 16 clients), and the training step
+# at a larger batch; with --real NAME, a real scene's every stage
 # from its photos too (data/raw/NAME carried beside the checkout: bird's 1.6 MB fit). Each step has its
 # own time limit, cut to what is left of one budget counted from the start (--budget, 570 s: the
 # whole script fits one ten-minute call whatever each step takes), and runs even when one before
@@ -36,7 +37,7 @@ while [[ $# -gt 0 ]]; do
         --budget) shift; budget="${1:?--budget needs seconds}" ;;
         --real) shift; real+=("${1:?--real needs a scene name}") ;;
         --scaling) shift; scaling="${1:?--scaling needs a number of mapping frames}" ;;
-        -h|--help) sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'
+        -h|--help) sed -n '2,22p' "$0" | sed 's/^# \{0,1\}//'
                    echo "usage: $(basename "$0") [--quick] [--dry-run] [--wheels DIR] [--budget S] [--real NAME]... [--scaling FRAMES]"
                    exit 0 ;;
         *) echo "error: unknown argument $1" >&2; exit 2 ;;
@@ -76,6 +77,7 @@ else
     add pipeline 240 "$python -m benchmarks.pipeline device --device auto --work $work --batch-sizes 2048 8192"
     add query 60 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
     add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
+    add serve 120 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 16 --workers 4 --requests 400 --device auto"
     add profile_8192 60 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --variant batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
 # A real scene from its photos, every stage as `dvc repro` runs it (the training target's second

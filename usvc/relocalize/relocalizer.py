@@ -57,6 +57,7 @@ from usvc.relocalize.features.path import (
 )
 from usvc.relocalize.keypoint_refinement import RefineOptions, refine_pose
 from usvc.relocalize.map_loading import find_landmarks, load_network, map_views
+from usvc.relocalize.network_batch import NetworkBatcher
 from usvc.relocalize.options import REFERENCE_SHORT_SIDE, RelocalizeOptions
 from usvc.relocalize.photo_batch import check_workers, in_order, query_threads, threads_per_query
 from usvc.relocalize.photo_processes import RelocalizerArgs, in_processes
@@ -103,6 +104,7 @@ class Relocalizer:
         # precision as resolved here, since `auto` times the products (a process starting beside others could
         # find them otherwise)
         encoder_weights = network.encoder_weights
+        self.batcher: NetworkBatcher | None = None  # photos of threads side by side through the network together
         self.args = RelocalizerArgs(self.map_path, None if encoder_weights is None else Path(encoder_weights),
                                     replace(self.options, precision=self.precision), device, seed,
                                     None if landmarks is None else Path(landmarks))
@@ -170,13 +172,24 @@ class Relocalizer:
             return resize_to_short_side(gray01, self.short_side)
         return gray01, 1.0
 
-    @torch.inference_mode()
     def scene_coordinates(self, gray01: np.ndarray) -> np.ndarray:
         """(h, w, 3) world coordinates of the image's 8x8 cells, as float64."""
+        if self.batcher is not None:
+            return self.batcher(gray01)
+        return self.scene_coordinates_of([gray01])[0]
+
+    def batch_network(self, max_batch: int = 16, wait_s: float = 0.003) -> None:
+        """From now on, photos that threads localize side by side go through the network together
+        (`network_batch`: for a GPU; a batch's answers may differ from one photo's in the last bits)."""
+        self.batcher = NetworkBatcher(self.scene_coordinates_of, max_batch, wait_s) if max_batch > 1 else None
+
+    @torch.inference_mode()
+    def scene_coordinates_of(self, grays: list[np.ndarray]) -> list[np.ndarray]:
+        """scene_coordinates of photos of one size, through the network as one batch."""
         with autocast(self.precision, self.device), for_network():
-            image = normalise(gray01).to(self.device).contiguous(memory_format=self.memory_format)
-            out = self.regressor(image)[0].float()
-        return out.permute(1, 2, 0).double().cpu().numpy()
+            images = torch.cat([normalise(g) for g in grays]) if len(grays) > 1 else normalise(grays[0])
+            out = self.regressor(images.to(self.device).contiguous(memory_format=self.memory_format)).float()
+        return [o.permute(1, 2, 0).double().cpu().numpy() for o in out]
 
     def localize(self, image: np.ndarray | str | Path | Photo, intrinsics: Intrinsics | None, *,
                  channels: str = "rgb", intrinsics_source: str = "") -> PoseEstimate:

@@ -31,6 +31,7 @@ from usvc.serve.metrics import Metrics
 from usvc.serve.options import ServeOptions
 from usvc.serve.page import PAGE
 from usvc.serve.photo import check_header, localize_photo
+from usvc.serve.processes import ProcessWorkers, WorkerMap
 from usvc.serve.work import WorkPool
 
 log = logging.getLogger("usvc.serve")
@@ -95,18 +96,27 @@ def create_app(registry: MapRegistry, options: ServeOptions | None = None) -> Fa
     options = (options or ServeOptions()).check()
     metrics = Metrics()
     pool = WorkPool(options.threads, options.queue, options.retry_after_s)
+    processes = None
+    if options.processes:  # every map again in each worker process, made as the server's was
+        processes = ProcessWorkers([WorkerMap(s.name, type(s.relocalizer), s.relocalizer.args) for s in registry],
+                                   options.threads, options.process_threads)
+    elif options.batch > 1:  # the photos waiting on the threads through the network together
+        for served in registry:
+            served.relocalizer.batch_network(options.batch)
     workdir = Path(tempfile.mkdtemp(prefix="usvc-serve-"))  # uploads live here for their request only
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
         pool.shutdown()
+        if processes is not None:
+            processes.shutdown()
         shutil.rmtree(workdir, ignore_errors=True)
 
     app = FastAPI(title="usvc serve", version="1", lifespan=lifespan,
                   description="Camera relocalization: a photo's 6-DoF pose in a mapped place (docs/serve.md).")
     app.state.registry, app.state.options, app.state.metrics, app.state.pool = registry, options, metrics, pool
-    app.state.workdir = workdir
+    app.state.workdir, app.state.processes = workdir, processes
     app.add_middleware(CountRequests, metrics=metrics)
 
     def failed(request: Request, err: ApiError) -> JSONResponse:
@@ -174,8 +184,11 @@ def create_app(registry: MapRegistry, options: ServeOptions | None = None) -> Fa
         suffix = check_header(query.photo, options.max_megapixels)
         relocalizer = served.relocalizer
         t0 = time.perf_counter()
+        deadline = time.monotonic() + options.timeout_s
 
         def work() -> dict[str, Any]:
+            if processes is not None:
+                return processes.localize(name, query.photo, suffix, query.intrinsics, query.name, deadline)
             return localize_photo(relocalizer, query.photo, suffix, query.intrinsics, query.name, workdir)
 
         try:

@@ -1,5 +1,5 @@
 """`usvc serve`: its flags, and the server they start (uvicorn, one process; localize work on
---workers threads)."""
+--workers threads, or with --processes in --workers worker processes)."""
 
 from __future__ import annotations
 
@@ -29,6 +29,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                      help="largest photo, from its header before decoding (default 50)")
     srv.add_argument("--workers", type=int, default=1,
                      help="photos localized side by side, on threads (each gets --threads divided among them)")
+    srv.add_argument("--processes", action="store_true",
+                     help="localize side by side in --workers processes (each holding the maps) rather than threads")
+    srv.add_argument("--batch", type=int, default=1,
+                     help="up to this many photos running side by side go through the network as one batch "
+                          "(for a GPU with several --workers; answers may differ in the last bits; default 1: off)")
     srv.add_argument("--queue", type=int, default=8,
                      help="requests that may wait beyond those running; more are answered 503 (default 8)")
     srv.add_argument("--timeout", type=float, default=30.0, help="seconds a request may wait and run (504 after)")
@@ -74,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsvcError(f"--max-mb {args.max_mb:g}: must be in (0, 1024]")
     token = read_token(args.token_file) if args.token_file else None
     options = ServeOptions(max_bytes=int(args.max_mb * 1024 * 1024), max_megapixels=args.max_megapixels,
-                           threads=args.workers, queue=args.queue, timeout_s=args.timeout,
+                           threads=args.workers, processes=args.processes, batch=args.batch,
+                           process_threads=max(1, args.threads // args.workers), queue=args.queue, timeout_s=args.timeout,
                            body_timeout_s=args.body_timeout, token=token).check()
     if args.host not in LOOPBACK and token is None:
         log.warning("serving on %s without --token-file: anyone who reaches it may use it", args.host)

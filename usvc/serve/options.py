@@ -14,7 +14,10 @@ class ServeOptions:
 
     max_bytes: int = 20 * 1024 * 1024  # a request body larger than this is refused (413) before it is read in full
     max_megapixels: float = 50.0  # a photo whose header claims more pixels is refused (413) before decoding
-    threads: int = 1  # photos localized side by side (worker threads; each query gets cores // threads)
+    threads: int = 1  # photos localized side by side (worker threads or processes)
+    processes: bool = False  # side by side in worker processes (each holding the maps) rather than threads
+    process_threads: int = 1  # with processes: the threads each process localizes a photo with
+    batch: int = 1  # photos running side by side on threads that go through the network together (a GPU's); 1: off
     queue: int = 8  # requests admitted beyond those running; one more is answered 503 with Retry-After
     timeout_s: float = 30.0  # a request waiting or running longer is answered 504 (its work may finish unseen)
     body_timeout_s: float = 30.0  # the whole request body must arrive within this (a stalled upload: 408)
@@ -31,6 +34,14 @@ class ServeOptions:
                 out.append(f"{name}={value!r} must be a finite number > 0")
         if not (isinstance(self.threads, int) and self.threads >= 1):
             out.append(f"threads={self.threads!r} must be a whole number >= 1")
+        if not (isinstance(self.process_threads, int) and self.process_threads >= 1):
+            out.append(f"process_threads={self.process_threads!r} must be a whole number >= 1")
+        if not (isinstance(self.batch, int) and self.batch >= 1):
+            out.append(f"batch={self.batch!r} must be a whole number >= 1")
+        elif self.batch > 1 and self.processes:
+            out.append("batch > 1 needs threads, not processes (a process localizes one photo at a time)")
+        if not isinstance(self.processes, bool):
+            out.append(f"processes={self.processes!r} must be true or false")
         if not (isinstance(self.queue, int) and self.queue >= 0):
             out.append(f"queue={self.queue!r} must be a whole number >= 0")
         if not (isinstance(self.retry_after_s, int) and self.retry_after_s >= 1):
