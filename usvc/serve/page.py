@@ -14,7 +14,7 @@ PAGE = """<!doctype html>
 <style>
 body{font-family:system-ui,sans-serif;max-width:78rem;margin:1rem auto;padding:0 1rem;color:#222}
 h1{margin:.2rem 0 .4rem;font-size:1.6rem} p{margin:.4rem 0}
-.cols{display:grid;grid-template-columns:minmax(18rem,25rem) 1fr;gap:1rem;align-items:start}
+.cols{display:grid;grid-template-columns:minmax(18rem,27rem) 1fr;gap:1rem;align-items:start}
 @media (max-width:50rem){.cols{grid-template-columns:1fr}}
 #drop{border:2px dashed #888;border-radius:8px;padding:1.2rem;text-align:center;margin:.6rem 0;cursor:pointer}
 #drop.over{background:#eef}
@@ -38,15 +38,15 @@ td:first-child{color:#555;white-space:nowrap} td.num{font-family:ui-monospace,mo
 <p id="status"></p>
 <table id="pose"><tbody>
 <tr><td>photo</td><td id="pose-name"></td></tr>
-<tr><td>position (camera centre)</td><td class="num" id="pose-center"></td></tr>
-<tr><td>rotation q (w x y z)</td><td class="num" id="pose-quat"></td></tr>
-<tr><td>t (world to camera)</td><td class="num" id="pose-t"></td></tr>
+<tr><td>position</td><td class="num" id="pose-center"></td></tr>
+<tr><td>rotation q<br>(w x y z)</td><td class="num" id="pose-quat"></td></tr>
+<tr><td>t</td><td class="num" id="pose-t"></td></tr>
 <tr><td>confidence</td><td class="num" id="pose-confidence"></td></tr>
 <tr><td>inliers / cells</td><td class="num" id="pose-inliers"></td></tr>
 <tr><td>warnings</td><td id="pose-warnings"></td></tr>
 <tr><td>seconds</td><td class="num" id="pose-seconds"></td></tr>
 </tbody></table>
-<p class="note">x_cam = R x_world + t; q is R's quaternion, the position is -R<sup>T</sup>t.</p>
+<p class="note">World to camera: x_cam = R x_world + t, q is R's quaternion; the position is the camera's centre, -R<sup>T</sup>t.</p>
 </div><div>
 <div id="view"></div><p class="note" id="scene-note"></p>
 </div></div>
@@ -103,7 +103,7 @@ function draw() {
                  marker: {size: 1.5, color: "#888", opacity: 0.6}, hoverinfo: "skip"});
     const c = scene.cameras;
     if (c.centers.length) {
-      const lx = [], ly = [], lz = [], s = 0.08 * radius;
+      const lx = [], ly = [], lz = [], s = 0.15 * radius;
       c.centers.forEach((o, i) => { const d = c.forward[i]; lx.push(o[0], o[0] + s * d[0], null); ly.push(o[1], o[1] + s * d[1], null); lz.push(o[2], o[2] + s * d[2], null); });
       traces.push({type: "scatter3d", mode: "lines+markers", name: "mapping cameras (" + c.total + ")", x: lx, y: ly, z: lz,
                    line: {color: "#3b6fd8", width: 2}, marker: {size: 2, color: "#3b6fd8"}, hoverinfo: "skip"});
@@ -111,7 +111,7 @@ function draw() {
     $("scene-note").textContent = p.total + " points (" + p.source + ", " + p.shown + " shown), " + c.total + " mapping cameras" + (c.source ? " (" + c.source + ")" : "");
   }
   if (answer && answer.success) {
-    const f = frustum(answer, 0.15 * radius);
+    const f = frustum(answer, 0.25 * radius);
     traces.push({type: "scatter3d", mode: "lines", name: "localized camera", x: f.x, y: f.y, z: f.z, line: {color: "#e0301e", width: 6}, hoverinfo: "skip"});
     const c = answer.camera_center;
     traces.push({type: "scatter3d", mode: "markers", name: "camera centre", x: [c[0]], y: [c[1]], z: [c[2]], marker: {size: 6, color: "#e0301e"},
