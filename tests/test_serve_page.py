@@ -110,7 +110,8 @@ def wait_for(driver: Any, script: str, timeout: float = 60.0) -> Any:
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for: {script}\n{driver.execute_script('return document.body.innerText')}")
+            page = driver.execute_script("return document.body.innerText")
+            raise AssertionError(f"timed out waiting for: {script}\n{page}")
         time.sleep(0.1)
 
 
