@@ -1,7 +1,8 @@
 """The FastAPI application: `create_app(registry, options)`.
 
-GET / (a page: choose a map, drop a photo), GET /healthz, GET /metrics, GET /v1/maps,
-POST /v1/maps/{name}/localize; OpenAPI docs at /docs. Every refusal is one JSON error
+GET / (a page: choose a map, drop a photo, see the camera in the map), GET /healthz, GET /metrics,
+GET /v1/maps, GET /v1/maps/{name}/scene, POST /v1/maps/{name}/localize; OpenAPI docs at /docs
+(served offline: `usvc.serve.assets`). Every refusal is one JSON error
 (`usvc.serve.errors`); docs/serve.md is the API page.
 """
 
@@ -21,17 +22,20 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import usvc.serve.requests as requests
+from usvc.serve.assets import add_offline_docs
 from usvc.serve.errors import ApiError, status_reason
-from usvc.serve.maps import MapRegistry
+from usvc.serve.maps import MapRegistry, ServedMap
 from usvc.serve.metrics import Metrics
 from usvc.serve.options import ServeOptions
 from usvc.serve.page import PAGE
 from usvc.serve.photo import check_header, localize_photo
 from usvc.serve.processes import ProcessWorkers, WorkerMap
+from usvc.serve.scene_view import SceneCache
 from usvc.serve.work import WorkPool
 
 log = logging.getLogger("usvc.serve")
@@ -113,11 +117,13 @@ def create_app(registry: MapRegistry, options: ServeOptions | None = None) -> Fa
             processes.shutdown()
         shutil.rmtree(workdir, ignore_errors=True)
 
-    app = FastAPI(title="usvc serve", version="1", lifespan=lifespan,
+    app = FastAPI(title="usvc serve", version="1", lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Camera relocalization: a photo's 6-DoF pose in a mapped place (docs/serve.md).")
     app.state.registry, app.state.options, app.state.metrics, app.state.pool = registry, options, metrics, pool
     app.state.workdir, app.state.processes = workdir, processes
     app.add_middleware(CountRequests, metrics=metrics)
+    add_offline_docs(app)
+    scenes = SceneCache()
 
     def failed(request: Request, err: ApiError) -> JSONResponse:
         request.state.reason = err.reason
@@ -170,14 +176,26 @@ def create_app(registry: MapRegistry, options: ServeOptions | None = None) -> Fa
         authorize(request)
         return {"maps": [served.info for served in registry]}
 
-    @app.post("/v1/maps/{name}/localize", summary="a photo's pose in the named map",
-              openapi_extra={"requestBody": LOCALIZE_BODY}, responses=LOCALIZE_RESPONSES)
-    async def localize(name: str, request: Request) -> Response:
-        authorize(request)
+    def served_map(name: str) -> ServedMap:
         served = registry.get(name)
         if served is None:
             raise ApiError("unknown_map", f"no map named {name[:70]!r}; this server has: "
                            f"{', '.join(registry.names()) or 'none'}")
+        return served
+
+    @app.get("/v1/maps/{name}/scene", summary="the map's 3D points (subsampled) and mapping cameras, for a view",
+             responses={401: ERROR, 404: ERROR})
+    async def scene(name: str, request: Request) -> Response:
+        authorize(request)
+        served = served_map(name)
+        data = await run_in_threadpool(scenes.get, served.name, served.relocalizer)  # once per map
+        return Response(data, media_type="application/json")
+
+    @app.post("/v1/maps/{name}/localize", summary="a photo's pose in the named map",
+              openapi_extra={"requestBody": LOCALIZE_BODY}, responses=LOCALIZE_RESPONSES)
+    async def localize(name: str, request: Request) -> Response:
+        authorize(request)
+        served = served_map(name)
         body = await requests.read_body(request, options.max_bytes, options.body_timeout_s)
         query = await requests.parse(request, body, options.max_bytes)
         del body
