@@ -77,7 +77,8 @@ else
     add pipeline 240 "$python -m benchmarks.pipeline device --device auto --work $work --batch-sizes 2048 8192"
     add query 60 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
     add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
-    add serve 120 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 16 --workers 4 --requests 400 --device auto"
+    add serve 90 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 16 --workers 4 --requests 300 --device auto"
+    add serve_batch 90 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 16 --workers 16 --batch 16 --requests 300 --device auto"
     add profile_8192 60 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --variant batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
 # A real scene from its photos, every stage as `dvc repro` runs it (the training target's second

