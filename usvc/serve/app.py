@@ -196,6 +196,7 @@ def create_app(registry: MapRegistry, options: ServeOptions | None = None) -> Fa
     async def localize(name: str, request: Request) -> Response:
         authorize(request)
         served = served_map(name)
+        pool.check_room()  # a full server says so at once, before the upload is read
         body = await requests.read_body(request, options.max_bytes, options.body_timeout_s)
         query = await requests.parse(request, body, options.max_bytes)
         del body

@@ -31,12 +31,20 @@ class WorkPool:
         with self._lock:
             return {"waiting": self.waiting, "running": self.running, "abandoned": self.abandoned}
 
+    def _busy(self) -> ApiError:
+        return ApiError("busy", f"the server is busy ({self.admitted} requests admitted, {self.threads} running "
+                        f"at a time): retry after {self.retry_after_s} s", headers={"Retry-After": str(self.retry_after_s)})
+
+    def check_room(self) -> None:
+        """ApiError busy now if no request could be admitted (before a request's body is read)."""
+        with self._lock:
+            if self.admitted >= self.capacity:
+                raise self._busy()
+
     def _admit(self) -> None:
         with self._lock:
             if self.admitted >= self.capacity:
-                raise ApiError("busy", f"the server is busy ({self.admitted} requests admitted, "
-                               f"{self.threads} running at a time): retry after {self.retry_after_s} s",
-                               headers={"Retry-After": str(self.retry_after_s)})
+                raise self._busy()
             self.admitted += 1
             self.waiting += 1
 
