@@ -2,8 +2,8 @@
 # One call on a GPU machine that measures usvc's GPU path: the CUDA tests, the bundled scene from
 # scratch with every stage on the device (seconds per stage, samples/s, the same map twice, the
 # training step's profile), a 640 x 480 query, a folder of photos (worker threads and worker
-# processes), `usvc serve` under load (640 x 480 photos, 1 and 16 clients), and the training step
-# at a larger batch; with --real NAME, a real scene's every stage
+# processes), `usvc serve` under load (640 x 480 photos, 1 and 16 clients, the network batched),
+# and the training step at a larger batch; with --real NAME, a real scene's every stage
 # from its photos too (data/raw/NAME carried beside the checkout: bird's 1.6 MB fit). Each step has its
 # own time limit, cut to what is left of one budget counted from the start (--budget, 570 s: the
 # whole script fits one ten-minute call whatever each step takes), and runs even when one before
@@ -68,18 +68,18 @@ if [[ -n "$scaling" ]]; then  # the scaling figure alone: every stage of the roo
     add "scaling_$scaling" "$budget" "$python -m benchmarks.pipeline scaling --frames $scaling --threads $(nproc) --variant device_$scaling -- device=auto"
 elif [[ $quick == 1 ]]; then
     add pytest_cuda 120 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
-    add pipeline 400 "$python -m benchmarks.pipeline device --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
+    add pipeline 380 "$python -m benchmarks.pipeline device --device auto --work $work --no-repeat --batch-sizes 2048 --head-iterations 10 --profile-iterations 5 -- train.iterations=30"
     add query 120 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --warmup 1 --device auto"
     add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 2 --repeat 1 --rounds 1 --device auto --processes"
+    add serve 40 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 4 --workers 4 --batch 4 --requests 20 --device auto"
     add profile_8192 120 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --iterations 5 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 else
     add pytest_cuda 90 "$python -m pytest -q -p no:cacheprovider -m cuda $cuda_tests"
     add pipeline 240 "$python -m benchmarks.pipeline device --device auto --work $work --batch-sizes 2048 8192"
-    add query 60 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
-    add folder 120 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
-    add serve 90 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 16 --workers 4 --requests 300 --device auto"
-    add serve_batch 90 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 16 --workers 16 --batch 16 --requests 300 --device auto"
-    add profile_8192 60 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --variant batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
+    add query 50 "$python -m benchmarks.query speed --scene-dir $work/mini/data/mini --size 640x480 --refine features none --device auto"
+    add folder 90 "$python -m benchmarks.query folder --scene-dir $work/mini/data/mini --workers 1 16 --repeat 5 --rounds 1 --device auto --processes"
+    add serve 60 "$python -m benchmarks.query serve-load --scene-dir $work/mini/data/mini --size 640x480 --clients 1 16 --workers 16 --batch 16 --requests 300 --device auto"
+    add profile_8192 40 "$python -m benchmarks.train profile --scene mini --data $work/mini/data --device auto --variant batch8192 -- train.batch_size=8192 train.bundle_groups_per_batch=256"
 fi
 # A real scene from its photos, every stage as `dvc repro` runs it (the training target's second
 # scene), with what is left of the budget: last, so that it never takes the others' time.

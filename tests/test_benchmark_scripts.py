@@ -232,11 +232,12 @@ def test_device_check_runs_existing_benchmarks_within_one_call(quick):
     args = ["bash", str(REPO / "scripts" / "device_check.sh"), "--dry-run"] + (["--quick"] if quick else [])
     *lines, budget = subprocess.run(args, capture_output=True, text=True, check=True, timeout=60).stdout.splitlines()
     names = [line.split(" ")[0] for line in lines]
-    assert names == ["pytest_cuda", "pipeline", "query", "folder", "profile_8192"]
+    assert names == ["pytest_cuda", "pipeline", "query", "folder", "serve", "profile_8192"]
     limits = [int(line.split("(")[1].split(" s)")[0]) for line in lines]
     assert sum(limits) <= int(budget.split()[1]) <= (900 if quick else 570)  # every step's limit is cut to the budget
     called = [_benchmark_called(line) for line in lines[1:]]
-    assert called == [("pipeline", "device"), ("query", "speed"), ("query", "folder"), ("train", "profile")]
+    assert called == [("pipeline", "device"), ("query", "speed"), ("query", "folder"), ("query", "serve-load"),
+                      ("train", "profile")]
     *with_bird, _ = subprocess.run(args + ["--real", "bird"], capture_output=True, text=True, check=True,
                                    timeout=60).stdout.splitlines()
     assert with_bird[:-1] == lines and with_bird[-1].startswith("real_bird (")  # last: it gets what is left
@@ -281,7 +282,7 @@ def test_device_check_cuts_every_step_to_what_is_left_of_its_budget(tmp_path):
     steps = (tmp_path / "out" / "steps.txt").read_text().splitlines()
     # bash's SECONDS counts whole clock seconds, so the first step may start in the budget's second second
     assert steps[0].startswith("pytest_cuda: exit 0 in ") and steps[0].endswith(("(limit 7 s)", "(limit 6 s)"))
-    assert [line.split(":")[0] for line in steps[1:]] == ["pipeline", "query", "folder", "profile_8192"]
+    assert [line.split(":")[0] for line in steps[1:]] == ["pipeline", "query", "folder", "serve", "profile_8192"]
     assert all("skipped" in line and "of the 7 s budget" in line for line in steps[1:])
     checkout = tmp_path / "checkout"  # a checkout with a scene declared and its photos not there
     (checkout / "scripts").mkdir(parents=True)
