@@ -47,14 +47,18 @@ class RelocalizerArgs:
     seed: int
     landmarks: Path | None
 
+    def make(self, cls: Callable[..., Any]) -> Any:
+        """The relocalizer of class `cls` (the `Relocalizer` class or a subclass) these arguments make."""
+        return cls(self.map_path, self.encoder_weights, self.options, device=self.device, seed=self.seed,
+                   landmarks=self.landmarks)
+
 
 def _start(make: Callable[..., Any], args: RelocalizerArgs, threads: int) -> None:
     """A worker's start: its thread pools (torch's, OpenCV's and BLAS's, for the process's life),
     then its relocalizer (`make`: the class, sent by name)."""
     global _WORKER
     _POOLS.enter_context(query_threads(threads))
-    _WORKER = make(args.map_path, args.encoder_weights, args.options, device=args.device, seed=args.seed,
-                   landmarks=args.landmarks)
+    _WORKER = args.make(make)
 
 
 def _localize(item: tuple[Any, Any, dict]) -> Any:

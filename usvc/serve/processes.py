@@ -57,9 +57,7 @@ def _worker_main(conn: Connection, maps: list[WorkerMap], threads: int, inline: 
         workdir = Path(tempfile.mkdtemp(prefix="usvc-serve-worker-"))
         stack.callback(shutil.rmtree, workdir, True)
         try:
-            relocalizers = {m.name: m.make(m.args.map_path, m.args.encoder_weights, m.args.options,
-                                           device=m.args.device, seed=m.args.seed, landmarks=m.args.landmarks)
-                            for m in maps}
+            relocalizers = {m.name: m.args.make(m.make) for m in maps}
         except Exception as e:  # a map that loaded in the server and not here: one line back
             conn.send(("failed", " ".join(str(e).split())[:300]))
             return

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from usvc.core.artifact_names import KEYPOINTS_H5, TRACKS_H5
+from usvc.core.geometry import camera_centers
 from usvc.pipeline.paths import ScenePaths
 from usvc.relocalize.answer_checks import map_extent
 from usvc.relocalize.relocalizer import Relocalizer
@@ -69,9 +70,8 @@ def read_cameras(path: Path) -> MappingCameras:
     keep = np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1)
     R, t = R[keep], t[keep]
     names = [n for n, k in zip(names, keep) if k]
-    # x_cam = R x_world + t: the centre is -R^T t, the camera's axes in the world are R's rows
-    centers = -np.einsum("mji,mj->mi", R, t)
-    return MappingCameras(names, centers, R[:, 2, :], -R[:, 1, :], path.name)
+    # x_cam = R x_world + t: the camera's axes in the world are R's rows
+    return MappingCameras(names, camera_centers(R, t), R[:, 2, :], -R[:, 1, :], path.name)
 
 
 def mapping_cameras(map_path: Path, known: list[str] | None = None) -> MappingCameras | None:
