@@ -299,7 +299,8 @@ def test_device_check_cuts_every_step_to_what_is_left_of_its_budget(tmp_path):
 def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
     """`pipeline scaling` at two tiny sizes of the generated room, in a copy of the checkout: each
     size's stages, bytes, query time and both accuracies in the JSON, the log-log plot beside it,
-    and the generated scenes' folders removed afterwards."""
+    the one-at-a-time query timed in alternated rounds once both are built, and the generated
+    scenes' folders removed afterwards."""
     import shutil
 
     checkout = tmp_path / "checkout"
@@ -310,7 +311,8 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
         shutil.copy(REPO / name, checkout / name)
     env = {**os.environ, "USVC_BENCHMARK_DIR": str(tmp_path / "reports"), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, "-m", "benchmarks.pipeline", "scaling", "--frames", "8", "12",
-                           "--threads", "1", "--checkout", str(checkout), "--variant", "smoke", "--",
+                           "--threads", "1", "--checkout", str(checkout), "--variant", "smoke", "--query-rounds", "2",
+                           "--",
                            "train.iterations=20",
                            "buffer.min_size=8192", "generate.n_query_frames=3", "generate.supersample=1"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
@@ -323,7 +325,15 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
         assert all(v["seconds"] > 0 for v in s["stages"].values())
         assert s["map_bytes"] > 0 and s["landmarks_bytes"] > 0 and s["query_ms_median"] > 0
         assert s["query_latency_ms"]["total"] >= s["query_latency_ms"]["network"] > 0
+        rounds = s["query_latency_rounds_ms"]
+        assert len(rounds) == 2 and min(rounds) <= s["query_latency_ms"]["total"] <= max(rounds)
         assert s["queries"] == 3 and 0 <= s["share_without_fallback"] <= 1 and s["train_steps"] == 20
         assert "acc_5cm_5deg" in s["metrics"] and "initial_acc_5cm_5deg" in s["metrics"]
+    assert report["query_rounds"] == 2
+    rounds = [line.split(" query round")[0].strip() for line in proc.stdout.splitlines() if " query round" in line]
+    assert rounds == ["room8", "room12", "room8", "room12"]  # after both are built, the sizes alternated
+    lines = proc.stdout.splitlines()
+    built = max(i for i, line in enumerate(lines) if line.split()[:2] == ["room12", "metrics"])
+    assert built < min(i for i, line in enumerate(lines) if " query round" in line)
     assert (tmp_path / "reports" / "pipeline_scaling_smoke.png").stat().st_size > 10_000
     assert not any((checkout / "data").glob("room*")) and not any((checkout / "results").glob("room*"))

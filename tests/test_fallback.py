@@ -381,6 +381,31 @@ def test_pose_checked_matches_take_the_most_covisible_images_when_capped():
     assert same.images == every.images and np.array_equal(same.keypoint, every.keypoint)
 
 
+def test_pose_checked_matches_take_images_while_their_comparisons_fit():
+    """features_final_comparisons: the most covisible images are taken while the descriptor
+    comparisons they need fit the bound (the first always), each keeping exactly the matches the
+    unbounded pass finds in it; a bound they all fit in changes nothing."""
+    landmarks, feats = scene()
+    obs = landmarks.observations
+    seen = np.arange(len(landmarks))
+    every = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0)
+    pairs = lambda found: sorted(zip(found.keypoint.tolist(), found.landmark.tolist()))  # noqa: E731
+    taken = []
+    for bound in [1] + [2**k for k in range(14, 24)] + [10**12]:
+        found = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0, max_comparisons=bound)
+        rest = pairs(every)
+        for pair in pairs(found):  # each taken image's matches are the unbounded pass's
+            rest.remove(pair)
+        taken.append(found.images)
+    assert taken[0] == 1 and taken[-1] == len(MAPPING) and taken == sorted(taken)  # more as the bound grows
+    assert any(1 < n < len(MAPPING) for n in taken)
+    one = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0, max_comparisons=1)
+    most = max(obs.image_slices(), key=lambda s: s[2] - s[1])[0]  # the image observing the most of them
+    assert set(one.landmark.tolist()) <= set(obs.landmark[obs.image == most].tolist()) and len(one) > 0
+    same = pose_checked_matches(landmarks, feats, CAM, R_TRUE, T_TRUE, seen, 2.0, max_comparisons=10**12)
+    assert np.array_equal(same.keypoint, every.keypoint) and np.array_equal(same.landmark, every.landmark)
+
+
 def test_refinement_on_inliers_recovers_the_pose_and_fails_without_inliers():
     landmarks, feats = scene()
     xyz = landmarks.xyz

@@ -332,6 +332,7 @@ def test_map_errors(tiny_map: tuple[Path, Path], tmp_path: Path) -> None:
     ({"focal_tolerance": -0.1}, r"focal_tolerance=-0.1 must be >= 0"),
     ({"precision": "fp16"}, r"precision='fp16' is not one of \['auto', 'bf16', 'fp32'\]"),
     ({"features_final_images": -1}, r"features_final_images=-1 must be >= 0"),
+    ({"features_final_comparisons": -1}, r"features_final_comparisons=-1 must be >= 0"),
 ])
 def test_options_are_refused_as_typed(tiny_map: tuple[Path, Path], kwargs: dict, message: str) -> None:
     """The value named is the one given, not the threshold rescaled to the working size."""

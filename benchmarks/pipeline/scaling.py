@@ -6,7 +6,9 @@ For each size N the miniature room is generated with N mapping frames (`n_map_se
 N / n_map_sequences frames each, the same 20 queries at 320 x 240) as the scene `room<N>`
 (data/raw/room<N>, data/room<N>, results/room<N>), and each stage runs in a process of its own,
 as `dvc repro` runs it (`python -m stages.<stage> scene=mini scene.name=room<N> ...`). With
-`--scene NAME` a configured scene (its photos in place) is measured instead, once.
+`--scene NAME` a configured scene (its photos in place) is measured instead, once. Once every size
+is built, one query at a time is timed on each (`--query-rounds` rounds, the sizes alternated: the
+machine's speed drifts over the minutes a size's stages take).
 
     python -m benchmarks.pipeline scaling --frames 60 240 960 3840
     python -m benchmarks.pipeline scaling --frames 60 240 -- train.iterations=200
@@ -16,7 +18,8 @@ Writes `results/benchmarks/pipeline_scaling[_<scene>].json` (<scene> with --scen
 stage's wall seconds (interpreter start included) and peak resident memory (what the stage records
 about itself), bytes on disk of the map and of the landmarks, the median and mean seconds a query
 in the relocalize stage (two queries side by side, its `query_workers`) and the median of one query
-at a time (`query_latency_ms`: `benchmarks.query speed`, photo in and pose out, with its parts),
+at a time (`query_latency_ms`: `benchmarks.query speed`, photo in and pose out, with its parts, the
+median over the rounds; `query_latency_rounds_ms` each round's),
 the share of queries answered by the learned pose
 without the fallback, and the metrics (`acc_*` of the final answer, `initial_acc_*` of the learned
 pose, with the training fit). With more than one size, a PNG of the same name beside it plots seconds per
@@ -139,10 +142,26 @@ def measure(scene_args: list[str], name: str, overrides: list[str], threads: int
         "train_steps": train.get("iterations") or train.get("steps"),
         "train_fit": {k: v for k, v in train.items() if "reprojection" in k or "median_px" in k or k.endswith("_px")},
         **query_figures(paths),
-        "query_latency_ms": query_latency(paths.scene_dir, env, checkout),
         "metrics": {k: v for k, v in metrics.items() if k.startswith(("acc_", "initial_acc_", "median_", "initial_median_"))
                     or k in ("n_queries", "n_failed")},
     }
+
+
+def query_rounds(rows: list[dict], scene_dirs: dict[str, Path], checkout: Path, threads: int, rounds: int) -> None:
+    """`query_latency` of every measured size, `rounds` times with the sizes alternated (the
+    machine's speed drifts by a fifth over the minutes one size's stages take, so a size measured
+    right after its own stages is compared with another measured at another time): each row's
+    `query_latency_ms` is the median over the rounds of each part's figure, `query_latency_rounds_ms`
+    the rounds' totals. `scene_dirs`: each row's scene folder, by its scene's name."""
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    figures: list[list[dict]] = [[] for _ in rows]
+    for round_ in range(rounds):
+        for row, seen in zip(rows, figures):
+            seen.append(query_latency(scene_dirs[row["scene"]], env, checkout))
+            print(f"  {row['scene']} query round {round_ + 1}: {seen[-1]['total']} ms", flush=True)
+    for row, seen in zip(rows, figures):
+        row["query_latency_ms"] = {k: round(float(_median([f[k] for f in seen])), 1) for k in seen[0]}
+        row["query_latency_rounds_ms"] = [f["total"] for f in seen]
 
 
 def plot(rows: list[dict], out: Path) -> None:
@@ -186,6 +205,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", help="measure this configured scene (conf/scene/NAME.yaml) instead of the room")
     parser.add_argument("--threads", type=int, default=2, help="the stages' threads (and OMP_NUM_THREADS)")
     parser.add_argument("--keep", action="store_true", help="keep each generated size's data/ and results/")
+    parser.add_argument("--query-rounds", type=int, default=3,
+                        help="rounds of one-at-a-time queries over the sizes, alternated, after every size is built")
     parser.add_argument("--checkout", type=Path, default=ROOT,
                         help="the checkout whose stages run and whose data/ and results/ they write (default: this one)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every stage (after --)")
@@ -193,38 +214,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     checkout = args.checkout.resolve()
-    rows = []
-    if args.scene:
-        rows.append(measure([f"scene={args.scene}"], args.scene, args.overrides, args.threads, checkout))
-    else:
-        for frames in args.frames:
+    rows, scene_dirs, generated = [], {}, []
+    try:
+        if args.scene:
+            rows.append(measure([f"scene={args.scene}"], args.scene, args.overrides, args.threads, checkout))
+            scene_dirs[args.scene] = ScenePaths(checkout / "data", checkout / "results", args.scene).scene_dir
+        for frames in [] if args.scene else args.frames:
             if frames < 2 * SEQUENCES or frames % SEQUENCES:
                 args.parser.error(f"--frames {frames}: a multiple of {SEQUENCES}, at least {2 * SEQUENCES}")
             scene = f"room{frames}"
             scene_args = ["scene=mini", f"scene.name={scene}", f"scene.path=data/raw/{scene}"]
             env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+            generated.append(scene)
             t0 = time.perf_counter()
             run_stage("generate", [*scene_args, f"generate.frames_per_map_sequence={frames // SEQUENCES}",
                                    *[o for o in args.overrides if o.startswith("generate.")]], env, checkout)
             generate_s = time.perf_counter() - t0
             print(f"  {scene}   generate {generate_s:7.1f} s", flush=True)
-            try:
-                row = measure(scene_args, scene, [o for o in args.overrides if not o.startswith("generate.")],
-                              args.threads, checkout)
-            finally:
-                if not args.keep:
-                    for folder in (checkout / "data" / "raw" / scene, checkout / "data" / scene, checkout / "results" / scene):
-                        shutil.rmtree(folder, ignore_errors=True)
+            row = measure(scene_args, scene, [o for o in args.overrides if not o.startswith("generate.")],
+                          args.threads, checkout)
             row["generate_seconds"] = round(generate_s, 2)
             rows.append(row)
+            scene_dirs[scene] = ScenePaths(checkout / "data", checkout / "results", scene).scene_dir
+        query_rounds(rows, scene_dirs, checkout, args.threads, args.query_rounds)
+    finally:
+        for scene in [] if args.keep else generated:
+            for folder in (checkout / "data" / "raw" / scene, checkout / "data" / scene, checkout / "results" / scene):
+                shutil.rmtree(folder, ignore_errors=True)
     name = report_name(args, args.scene)
-    result = {"sizes": rows, "threads": args.threads, "overrides": args.overrides}
+    result = {"sizes": rows, "threads": args.threads, "query_rounds": args.query_rounds, "overrides": args.overrides}
     path = write_report(name, result)
     if len(rows) > 1:
         plot(rows, REPORT_DIR / f"{name}.png")
     for r in rows:
         print(f"{r['scene']}: {r['mapping_frames']} photos, mapping {r['mapping_seconds']} s, query "
-              f"{r.get('query_ms_median')} ms, map+landmarks {(r['map_bytes'] + r['landmarks_bytes']) / 1e6:.1f} MB, "
-              f"peak {r['peak_memory_mb']} MB, acc {r['metrics'].get('acc_5cm_5deg')}")
+              f"{r['query_latency_ms']['total']} ms one at a time ({r.get('query_ms_median')} ms in the stage), "
+              f"map+landmarks {(r['map_bytes'] + r['landmarks_bytes']) / 1e6:.1f} MB, peak {r['peak_memory_mb']} MB, "
+              f"acc {r['metrics'].get('acc_5cm_5deg')}")
     print(f"-> {path}")
-

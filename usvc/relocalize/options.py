@@ -62,6 +62,7 @@ class RelocalizeOptions:
     features_final: str = "confirmed"  # the answer's last pass: confirmed (each of its matches weighted by the mapping images whose SIFT + PnP matching finds it, unconfirmed ones dropped, refined: at least SIFT + PnP's precision on mini, office and bird) | guided (its guided passes alone, 20-64 ms less a 640 x 480 query) | images (SIFT + PnP's per-image matches instead of its own, refined at 4 px)
     features_retrieval_images: int = 64  # prior=learned: the query's matches to "every landmark" and SIFT + PnP's fallback go to this many mapping photos, those most like it (VLAD over the landmarks' words), and their landmarks; a map with no more photos is searched whole (docs/method.md); 0 = every photo
     features_final_images: int = 32  # the confirmed or images last pass matches at most this many mapping images, those that observe the most of the answer's landmarks (a query's cost then does not grow with the photos that made the map: docs/speed.md); 0 = every one that observes 15 of them
+    features_final_comparisons: int = 24_000_000  # the last pass's descriptor comparisons (keypoints x observations compared, summed over its images) at most this many: its images taken most covisible first while they fit, the first always (a dense capture's nearest photos each see all of the query's view: the pass would grow with the capture's density; docs/speed.md); 0 = no bound
     precision: str = "auto"  # encoder and head products: auto (bf16 where native and faster, else fp32) | bf16 | fp32
 
     def problems(self) -> list[str]:
@@ -82,6 +83,8 @@ class RelocalizeOptions:
             out.append(f"features_retrieval_images={self.features_retrieval_images!r} must be >= 0 (0: every photo)")
         if self.features_final_images < 0:
             out.append(f"features_final_images={self.features_final_images!r} must be >= 0 (0: every image)")
+        if self.features_final_comparisons < 0:
+            out.append(f"features_final_comparisons={self.features_final_comparisons!r} must be >= 0 (0: no bound)")
         if self.features_min_inliers_alone < 0:
             out.append(f"features_min_inliers_alone={self.features_min_inliers_alone!r} must be >= 0 (0: no check)")
         radii = list(self.features_radii_px)

@@ -37,7 +37,7 @@ def _images_evidence(out: FeatureResult, landmarks: Landmarks, feats: QueryFeatu
     seen = out.match_landmark[np.linalg.norm(uv - out.match_uv, axis=1) <= opts.max_error_px]
     max_error = max_error_px * min(camera.width, camera.height) / landmarks.image_short_side
     found = pose_checked_matches(landmarks, feats, camera, out.R, out.t, seen, max_error, image_descriptors,
-                                 opts.threads, opts.device, opts.final_images)
+                                 opts.threads, opts.device, opts.final_images, opts.final_comparisons)
     return found, max_error
 
 

@@ -52,6 +52,7 @@ class FeatureMatchOptions:
     threads: int = 1  # the query's threads: SIFT + PnP's pairs and the images pass's images side by side on them
     pnp: str = "poselib"  # the passes' LO-RANSAC PnP backend (`pnp.solve_pnp`): poselib | pycolmap
     final_images: int = 32  # the last pass's mapping images, the most covisible first (0: every one)
+    final_comparisons: int = 0  # the last pass's descriptor comparisons at most (0: no bound)
 
 
 def feature_options(options: RelocalizeOptions, short_side: int, device: str | None = None,
@@ -64,7 +65,8 @@ def feature_options(options: RelocalizeOptions, short_side: int, device: str | N
                                min_inliers=options.features_min_inliers,
                                view_margin_deg=options.features_view_margin_deg, device=device,
                                final=options.features_final, threads=threads, pnp=options.features_pnp,
-                               final_images=options.features_final_images)
+                               final_images=options.features_final_images,
+                               final_comparisons=options.features_final_comparisons)
 
 
 @dataclass

@@ -276,7 +276,8 @@ def _matching_sites(landmarks: Landmarks, image_descriptors: list[ByteRows] | No
 def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Camera, R: np.ndarray, t: np.ndarray,
                          seen: np.ndarray, max_error_px: float,
                          image_descriptors: list[ByteRows] | None = None, threads: int = 1,
-                         device: str | None = None, max_images: int = 0) -> VerifiedMatches:
+                         device: str | None = None, max_images: int = 0,
+                         max_comparisons: int = 0) -> VerifiedMatches:
     """SIFT + PnP's per-image matches around a pose the query already has (R, t): the query's
     keypoints matched as `verified_matches` matches them, but only to the mapping images that
     observe at least MIN_PAIR_INLIERS of the landmarks in `seen` (the rows the pose was found with)
@@ -285,7 +286,10 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
     gives none. With `max_images` > 0 only that many of those images are matched: the ones that
     observe the most of `seen` (the first in image order on ties), so the pass costs the same
-    however many photos made the map. A keypoint matched in several images counts once per image, as in SIFT + PnP. Only
+    however many photos made the map. With `max_comparisons` > 0 the images are taken in that order
+    while the descriptor comparisons of those taken (compared keypoints x compared observations, summed)
+    stay within it, the first always: a dense capture's most covisible images all see the whole
+    photo, and each compares more than a sparse capture's. A keypoint matched in several images counts once per image, as in SIFT + PnP. Only
     the keypoints within `max_error_px` of one of an image's landmarks under the pose are compared
     with that image's observations (about a third of them): the others could give no match the pose
     explains, and so take no part in the mutual test either. The images are matched on `threads`
@@ -300,12 +304,10 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     shared = np.add.reduceat(in_seen[obs.landmark], [a for _, a, _ in slices]).astype(np.int64) \
         if slices else np.zeros(0, np.int64)  # each image's observations of `seen` (slices are contiguous, none empty)
     rows = np.flatnonzero(shared >= MIN_PAIR_INLIERS)
-    if 0 < max_images < len(rows):  # the most covisible images, then back in image order
-        rows = np.sort(rows[np.argsort(-shared[rows], kind="stable")[:max_images]])
-    chosen = [(obs.landmark[slices[i][1]:slices[i][2]], descs[i]) for i in rows]
+    rows = rows[np.argsort(-shared[rows], kind="stable")]  # the most covisible first (image order on ties)
+    if 0 < max_images < len(rows):
+        rows = rows[:max_images]
 
-    query = ByteRows.of(feats.codes)
-    scratch = ProductBlocks(max((len(rows) for rows, _ in chosen), default=0) * len(feats))
     # (landmark, keypoint) pairs the pose puts within max_error_px of each other, found once: only
     # keypoints within reach of one of an image's landmarks can give a match the pose explains, so
     # the others are left out of that image's products (and so of its mutual test)
@@ -314,17 +316,31 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
         if len(shown) and len(feats) else np.zeros(0, [("i", np.intp), ("j", np.intp), ("v", np.float64)])
     reach_lm, reach_kp = shown[reach["i"]], reach["j"].astype(np.int64)
 
-    def match(image: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
-        """The image's matches the pose explains (query rows, landmark rows); None: too few matches at all."""
-        rows, desc = image
+    def compared(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, ByteRows]:
+        """Image i's landmark rows, its observations compared (visible ones), the keypoints compared
+        (within reach of one of them) and its descriptors."""
+        rows = obs.landmark[slices[i][1]:slices[i][2]]
         kept = np.flatnonzero(visible[rows])
-        if len(kept) == 0:
-            return None
         mine = np.zeros(len(landmarks.xyz), bool)
         mine[rows[kept]] = True
         near = np.zeros(len(feats), bool)
         near[reach_kp[mine[reach_lm]]] = True
-        near = np.flatnonzero(near)
+        return rows, kept, np.flatnonzero(near), descs[i]
+
+    chosen = [compared(i) for i in rows]
+    if max_comparisons > 0:
+        total = np.cumsum([len(near) * len(kept) for _, kept, near, _ in chosen])
+        chosen = chosen[:max(1, int(np.searchsorted(total, max_comparisons, side="right")))]
+    chosen = [chosen[k] for k in np.argsort(rows[:len(chosen)], kind="stable")]  # back in image order
+
+    query = ByteRows.of(feats.codes)
+    scratch = ProductBlocks(max((len(kept) for _, kept, _, _ in chosen), default=0) * len(feats))
+
+    def match(image: tuple[np.ndarray, np.ndarray, np.ndarray, ByteRows]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The image's matches the pose explains (query rows, landmark rows); None: too few matches at all."""
+        rows, kept, near, desc = image
+        if len(kept) == 0:
+            return None
         qi, mi = mutual_ratio_matches(query.take(near), desc if len(kept) == len(rows) else desc.take(kept),
                                       None if device else scratch, device)
         if len(qi) < MIN_PAIR_INLIERS:
