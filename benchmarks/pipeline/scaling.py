@@ -147,17 +147,18 @@ def measure(scene_args: list[str], name: str, overrides: list[str], threads: int
     }
 
 
-def query_rounds(rows: list[dict], scene_dirs: dict[str, Path], checkout: Path, threads: int, rounds: int) -> None:
+def query_rounds(rows: list[dict], checkout: Path, threads: int, rounds: int) -> None:
     """`query_latency` of every measured size, `rounds` times with the sizes alternated (the
     machine's speed drifts by a fifth over the minutes one size's stages take, so a size measured
     right after its own stages is compared with another measured at another time): each row's
     `query_latency_ms` is the median over the rounds of each part's figure, `query_latency_rounds_ms`
-    the rounds' totals. `scene_dirs`: each row's scene folder, by its scene's name."""
+    the rounds' totals."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     figures: list[list[dict]] = [[] for _ in rows]
     for round_ in range(rounds):
         for row, seen in zip(rows, figures):
-            seen.append(query_latency(scene_dirs[row["scene"]], env, checkout))
+            scene_dir = ScenePaths(checkout / "data", checkout / "results", row["scene"]).scene_dir
+            seen.append(query_latency(scene_dir, env, checkout))
             print(f"  {row['scene']} query round {round_ + 1}: {seen[-1]['total']} ms", flush=True)
     for row, seen in zip(rows, figures):
         row["query_latency_ms"] = {k: round(float(_median([f[k] for f in seen])), 1) for k in seen[0]}
@@ -214,11 +215,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     checkout = args.checkout.resolve()
-    rows, scene_dirs, generated = [], {}, []
+    rows, generated = [], []
     try:
         if args.scene:
             rows.append(measure([f"scene={args.scene}"], args.scene, args.overrides, args.threads, checkout))
-            scene_dirs[args.scene] = ScenePaths(checkout / "data", checkout / "results", args.scene).scene_dir
         for frames in [] if args.scene else args.frames:
             if frames < 2 * SEQUENCES or frames % SEQUENCES:
                 args.parser.error(f"--frames {frames}: a multiple of {SEQUENCES}, at least {2 * SEQUENCES}")
@@ -235,8 +235,7 @@ def run(args: argparse.Namespace) -> None:
                           args.threads, checkout)
             row["generate_seconds"] = round(generate_s, 2)
             rows.append(row)
-            scene_dirs[scene] = ScenePaths(checkout / "data", checkout / "results", scene).scene_dir
-        query_rounds(rows, scene_dirs, checkout, args.threads, args.query_rounds)
+        query_rounds(rows, checkout, args.threads, args.query_rounds)
     finally:
         for scene in [] if args.keep else generated:
             for folder in (checkout / "data" / "raw" / scene, checkout / "data" / scene, checkout / "results" / scene):

@@ -285,8 +285,8 @@ def pose_checked_matches(landmarks: Landmarks, feats: QueryFeatures, camera: Cam
     pair's matches are verified by the pose instead of two-view geometry (the landmark projects
     within `max_error_px` of the keypoint), and a pair with fewer than MIN_PAIR_INLIERS such matches
     gives none. With `max_images` > 0 only that many of those images are matched: the ones that
-    observe the most of `seen` (the first in image order on ties), so the pass costs the same
-    however many photos made the map. With `max_comparisons` > 0 the images are taken in that order
+    observe the most of `seen` (the first in image order on ties), so the pass's images do not
+    grow with the photos that made the map. With `max_comparisons` > 0 the images are taken in that order
     while the descriptor comparisons of those taken (compared keypoints x compared observations, summed)
     stay within it, the first always: a dense capture's most covisible images all see the whole
     photo, and each compares more than a sparse capture's. A keypoint matched in several images counts once per image, as in SIFT + PnP. Only
