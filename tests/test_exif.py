@@ -143,3 +143,54 @@ def test_a_camera_for_the_unturned_size_names_the_exif_orientation(tmp_path: Pat
     plain = photo(tmp_path / "plain.jpg")
     with pytest.raises(SceneError, match=r"camera says 48x64$"):
         check_image_size(read_image_bgr(plain), Camera("PINHOLE", H, W, (50, 50, 24, 32)), str(plain))
+
+
+def _chunks(data: bytes) -> list[bytes]:
+    """A PNG's chunks, each with its length, type, data and CRC."""
+    out, at = [], 8
+    while at < len(data):
+        length = int.from_bytes(data[at:at + 4], "big")
+        out.append(data[at:at + 12 + length])
+        at += 12 + length
+    return out
+
+
+@pytest.mark.parametrize("where", ["before", "after", "none", "xmp-after"])
+def test_png_exif_is_read_without_decoding_unless_it_follows_the_pixels(tmp_path: Path, where: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A PNG's EXIF (orientation, focal length) is what Pillow finds by decoding the whole image; the
+    pixels are decoded for it only when metadata follows them."""
+    from PIL import PngImagePlugin
+
+    from usvc.core.exif import open_checked, png_metadata_after_pixels, read_exif
+
+    path = photo(tmp_path / "p.png", 6 if where != "none" else None, size=(96, 64), **{"a405": 28})
+    chunks = _chunks(path.read_bytes())
+    if where in ("after", "xmp-after"):  # move the eXIf chunk (or add an XMP one) behind the pixels
+        exif = next(c for c in chunks if c[4:8] == b"eXIf")
+        chunks.remove(exif)
+        if where == "xmp-after":
+            info = PngImagePlugin.PngInfo()
+            info.add_itxt("XML:com.adobe.xmp", '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf='
+                          '"http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description xmlns:tiff='
+                          '"http://ns.adobe.com/tiff/1.0/" tiff:Orientation="8"/></rdf:RDF></x:xmpmeta>')
+            Image.new("RGB", (4, 4)).save(tmp_path / "x.png", pnginfo=info)
+            exif = next(c for c in _chunks((tmp_path / "x.png").read_bytes()) if c[4:8] == b"iTXt")
+        chunks.insert(len(chunks) - 1, exif)
+        path.write_bytes(PngImagePlugin._MAGIC + b"".join(chunks))
+    assert png_metadata_after_pixels(path) == (where in ("after", "xmp-after"))
+    with Image.open(path) as img:
+        expected = dict(img.getexif())  # Pillow's own: decodes the image
+    decodes = []
+    load = PngImagePlugin.PngImageFile.load
+    monkeypatch.setattr(PngImagePlugin.PngImageFile, "load", lambda img: decodes.append(1) or load(img))
+    with open_checked(path) as img:
+        found = read_exif(img)
+    assert len(decodes) == (where in ("after", "xmp-after"))  # decoded only when it had to
+    assert dict(found) == expected
+    assert oriented_size(path) == {"before": (64, 96), "after": (64, 96), "none": (96, 64),
+                                   "xmp-after": (64, 96)}[where]
+    assert exif_focal_px(path) == (None if where in ("none", "xmp-after") else pytest.approx(28 / 36 * 96))
+    cut = tmp_path / "cut.png"  # no IEND: Pillow's own way
+    cut.write_bytes(path.read_bytes()[:-12])
+    assert png_metadata_after_pixels(cut)

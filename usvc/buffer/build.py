@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
@@ -26,6 +24,7 @@ from usvc.buffer.keypoint_obs import sample_features, view_observations
 from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
 from usvc.core.options import check
+from usvc.core.ordered_pool import ordered_map
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Frame
 from usvc.keypoints.keypoints_file import SceneKeypoints
@@ -169,16 +168,10 @@ def _encoded(encoder: Encoder, plans: Iterator[_PlannedView], precision: str, de
         for plan in plans:
             yield (plan, *_encode(encoder, plan, precision, device))
         return
-    with _torch_threads(1), ThreadPoolExecutor(workers) as pool:
-        pending: deque = deque()
-        for plan in plans:
-            pending.append((plan, pool.submit(_encode, encoder, plan, precision, device)))
-            if len(pending) > 2 * workers:
-                first, job = pending.popleft()
-                yield (first, *job.result())
-        while pending:
-            first, job = pending.popleft()
-            yield (first, *job.result())
+    with _torch_threads(1):
+        for plan, (cells, kp) in ordered_map(lambda p: _encode(encoder, p, precision, device), plans, workers,
+                                             name="usvc-encode"):
+            yield plan, cells, kp
 
 
 @torch.inference_mode()

@@ -9,6 +9,7 @@ how viewers show it and how :func:`usvc.core.images.read_image_bgr` decodes it.
 from __future__ import annotations
 
 import math
+import struct
 import threading
 import warnings
 from pathlib import Path
@@ -86,11 +87,48 @@ def _open(path: str | Path) -> Image.Image:
         raise SceneError(f"cannot decode image {path} ({e})") from None
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# Chunks whose content Pillow's Image.getexif reads (EXIF, and EXIF or XMP inside text chunks).
+_PNG_METADATA_CHUNKS = (b"eXIf", b"tEXt", b"zTXt", b"iTXt")
+
+
+def png_metadata_after_pixels(path: str | Path) -> bool:
+    """Whether a PNG file holds a metadata chunk after its first pixel chunk (IDAT), walking the
+    chunk headers only; True too when the file does not read as a PNG's chunks to its end."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != PNG_SIGNATURE:
+                return True
+            seen_pixels = False
+            while True:
+                head = f.read(8)
+                if len(head) < 8:
+                    return True  # no IEND: truncated
+                length, kind = struct.unpack(">I4s", head)
+                if kind == b"IEND":
+                    return False
+                if kind == b"IDAT":
+                    seen_pixels = True
+                elif seen_pixels and kind in _PNG_METADATA_CHUNKS:
+                    return True
+                f.seek(length + 4, 1)  # the data and its CRC
+    except OSError:
+        return True
+
+
 def read_exif(img: Image.Image) -> Image.Exif | None:
-    """The image's EXIF block, or None when it has none or it is malformed."""
+    """The image's EXIF block, or None when it has none or it is malformed.
+
+    Pillow finds a PNG's EXIF only by decoding the whole image (its metadata may follow the
+    pixels); when the file has no metadata after its pixels, the chunks read with the header
+    already hold all of it, and it is read from them without decoding (the same block).
+    """
     # A malformed EXIF block must not make a decodable photo unusable: Pillow raises a zoo of
     # exception types (struct.error, SyntaxError, ...) for it, so treat any of them as "no EXIF".
     try:
+        if (img.format == "PNG" and "exif" not in img.info and isinstance(getattr(img, "filename", None), str)
+                and img.filename and not png_metadata_after_pixels(img.filename)):
+            return Image.Image.getexif(img)
         return img.getexif()
     except Exception:
         return None

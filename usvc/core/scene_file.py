@@ -5,7 +5,9 @@ Every stage after `prepare` reads this, never the source format, so importers ru
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -45,6 +47,33 @@ SCENE_SCHEMA: dict[str, Field] = {
 }
 
 
+DEPTH_GZIP_LEVEL = 4  # each depth map is one chunk of HDF5's gzip filter at this level
+
+
+@dataclass(frozen=True)
+class PackedDepth:
+    """A float32 depth map compressed as scene.h5 stores it (one gzip chunk): packed where the map is
+    read, maps compress side by side and a capture's maps are held compressed until written."""
+
+    shape: tuple[int, ...]
+    data: bytes
+
+    @classmethod
+    def of(cls, depth: np.ndarray) -> PackedDepth:
+        d = np.ascontiguousarray(depth, dtype=np.float32)
+        return cls(d.shape, zlib.compress(d.tobytes(), DEPTH_GZIP_LEVEL))
+
+
+def _write_depth(grp: h5py.Group, name: str, depth: np.ndarray | PackedDepth) -> None:
+    packed = depth if isinstance(depth, PackedDepth) else PackedDepth.of(depth)
+    if 0 in packed.shape:  # HDF5 chunks have no empty side
+        grp.create_dataset(name, shape=packed.shape, dtype=np.float32)
+        return
+    ds = grp.create_dataset(name, shape=packed.shape, dtype=np.float32, chunks=packed.shape, compression="gzip",
+                            compression_opts=DEPTH_GZIP_LEVEL)
+    ds.id.write_direct_chunk((0,) * len(packed.shape), packed.data)
+
+
 def _camera_arrays(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     params = np.full((len(cameras), _MAX_PARAMS), np.nan)
     for i, c in enumerate(cameras):
@@ -62,9 +91,10 @@ def _strings(ds: h5py.Dataset) -> list[str]:
     return [s.decode() if isinstance(s, bytes) else s for s in ds[()]]
 
 
-def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | None = None,
+def write_scene_h5(path: Path, scene: Scene, depths: Sequence[np.ndarray | PackedDepth | None] | None = None,
                    source_cameras: list[Camera] | None = None) -> None:
-    """Store frames, cameras and poses; images are referenced by name under IMAGE_DIR.
+    """Store frames, cameras and poses; images are referenced by name under IMAGE_DIR; `depths`, one
+    per frame or None, as arrays or already packed.
 
     ``source_cameras`` are the cameras of the images as imported (before undistortion and
     resizing), one per frame: the query side can undistort new photos of the same camera.
@@ -96,7 +126,7 @@ def write_scene_h5(path: Path, scene: Scene, depths: list[np.ndarray | None] | N
             grp = h5.create_group("depth")
             for i, d in enumerate(depths):
                 if d is not None:
-                    grp.create_dataset(str(i), data=d.astype(np.float32), compression="gzip")
+                    _write_depth(grp, str(i), d)
 
 
 def read_scene_h5(path: Path) -> Scene:

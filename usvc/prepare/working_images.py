@@ -11,6 +11,7 @@ import contextlib
 import hashlib
 import logging
 import tempfile
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,9 +24,11 @@ from usvc.core.atomic import WRITE_ERRNOS, WriteError, final_path
 from usvc.core.errors import SceneError
 from usvc.core.geometry import field_of_view_deg
 from usvc.core.images import read_photo
+from usvc.core.ordered_pool import ordered_map
 from usvc.core.scene import Camera, Frame, Scene
-from usvc.core.scene_file import IMAGE_DIR, read_scene_h5, write_scene_h5
+from usvc.core.scene_file import IMAGE_DIR, PackedDepth, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
+from usvc.pipeline.threads import cores_available
 from usvc.sfm.posing import pose_scene
 from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
 
@@ -61,12 +64,14 @@ def prepare_scene(scene: Scene, out_dir: Path, working_width: int, undistort_fov
     `undistort_fov` is ``crop`` (no black borders) or ``full`` (every source pixel kept); see
     :mod:`usvc.core.undistort`. A scene without poses is first posed by SfM (:mod:`usvc.sfm.posing`,
     options `sfm`, feature extraction on `threads` threads) on its photos at working resolution,
-    then undistorted with the calibrated cameras. Returns summary figures for the stage's metrics file.
+    then undistorted with the calibrated cameras. Photos are read, undistorted, resized and written
+    `threads` at a time (-1: every core this process may use), the same files for any count.
+    Returns summary figures for the stage's metrics file.
     """
     if not scene.has_poses:
         return _prepare_unposed(scene, out_dir, working_width, undistort_fov, sfm,
                                 threads)
-    return _write_prepared(scene, out_dir, working_width, undistort_fov)
+    return _write_prepared(scene, out_dir, working_width, undistort_fov, threads=threads)
 
 
 def check_distinct_mapping_images(scene: str, contents: dict[str, list[str]]) -> None:
@@ -157,34 +162,49 @@ def write_image(dst: Path, image: np.ndarray, where: str | None = None) -> None:
         raise WriteError(dst, exc, "image", where) from None
 
 
+def _prepared_image(frame: Frame, out_dir: Path, working_width: int, undistort_fov: str,
+                    where: str | None) -> tuple[Frame, PackedDepth | None, str | None]:
+    """Undistort, resize and write one frame's image: (its prepared frame, its depth at working
+    size, packed, or None, the hash of a mapping image's pixels)."""
+    image, camera = undistort(*decoded(frame), undistort_fov, where=str(frame.image_path))
+    depth = _read_depth(frame)
+    if depth is not None and frame.camera.has_distortion:
+        depth = cv2.resize(depth, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)
+        depth, _ = undistort(depth, frame.camera, undistort_fov, where=str(frame.depth_path), nearest=True)
+    h, w = image.shape[:2]
+    ww, wh = working_size(w, h, working_width)
+    if (ww, wh) != (w, h):
+        image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
+    dst = out_dir / IMAGE_DIR / frame.name
+    write_image(dst, image, where)
+    if depth is not None and depth.shape[:2] != (wh, ww):
+        depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
+    digest = hashlib.sha1(image.tobytes()).hexdigest() if frame.split == "train" else None
+    return (replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None),
+            None if depth is None else PackedDepth.of(depth), digest)
+
+
 def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
-                    where: str | None = None) -> dict:
-    """Undistort, resize and write every image, then scene.h5 (poses, cameras, depth). `where`: how a
-    failed write names `out_dir` (default: its artifact folder)."""
+                    where: str | None = None, threads: int = -1) -> dict:
+    """Undistort, resize and write every image (`threads` photos side by side; -1: every core this
+    process may use; the same files for any count), then scene.h5 (poses, cameras, depth). `where`:
+    how a failed write names `out_dir` (default: its artifact folder)."""
     scene.split("train")
     scene.split("test")
     check_cameras(scene.frames, undistort_fov)
     out_frames: list[Frame] = []
-    depths: list[np.ndarray | None] = []
+    depths: list[PackedDepth | None] = []
     contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels
-    for frame in tqdm(scene.frames, desc=f"prepare {scene.name}", unit="img"):
-        image, camera = undistort(*decoded(frame), undistort_fov, where=str(frame.image_path))
-        depth = _read_depth(frame)
-        if depth is not None and frame.camera.has_distortion:
-            depth = cv2.resize(depth, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)
-            depth, _ = undistort(depth, frame.camera, undistort_fov, where=str(frame.depth_path), nearest=True)
-        h, w = image.shape[:2]
-        ww, wh = working_size(w, h, working_width)
-        if (ww, wh) != (w, h):
-            image = cv2.resize(image, (ww, wh), interpolation=cv2.INTER_AREA)
-        dst = out_dir / IMAGE_DIR / frame.name
-        write_image(dst, image, where)
-        if depth is not None and depth.shape[:2] != (wh, ww):
-            depth = cv2.resize(depth, (ww, wh), interpolation=cv2.INTER_NEAREST)
-        depths.append(depth)
-        out_frames.append(replace(frame, image_path=dst, camera=camera.scaled(ww, wh), depth_path=None))
-        if frame.split == "train":
-            contents.setdefault(hashlib.sha1(image.tobytes()).hexdigest(), []).append(frame.name)
+    workers = min(threads if threads > 0 else cores_available(), len(scene.frames))
+    with _opencv_threads(1 if workers > 1 else cv2.getNumThreads()):  # one photo a thread
+        done = ordered_map(lambda f: _prepared_image(f, out_dir, working_width, undistort_fov, where),
+                           scene.frames, workers, name="usvc-prepare")
+        for frame, (out_frame, depth, digest) in tqdm(done, total=len(scene.frames), desc=f"prepare {scene.name}",
+                                                      unit="img"):
+            depths.append(depth)
+            out_frames.append(out_frame)
+            if digest is not None:
+                contents.setdefault(digest, []).append(frame.name)
     check_distinct_mapping_images(scene.name, contents)
     prepared = Scene(scene.name, out_frames, scene.metric_scale, out_dir, pose_source=scene.pose_source)
     try:
@@ -209,6 +229,16 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
     return stats
 
 
+@contextlib.contextmanager
+def _opencv_threads(count: int) -> Iterator[None]:
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(count)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
                      sfm: SfmOptions | None, threads: int) -> dict:
     if sfm is None:
@@ -218,7 +248,7 @@ def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_
         resized_dir.mkdir()
         # Its files are gone when the error is read: name the folder that is full, not them.
         where = f"{tempfile.gettempdir()} (the temporary folder SfM poses the photos in; TMPDIR sets it)"
-        _write_prepared(scene, resized_dir, working_width, undistort_fov, where)
+        _write_prepared(scene, resized_dir, working_width, undistort_fov, where, threads)
         resized = read_scene_h5(resized_dir / SCENE_H5)
         # SfM calibrates the importer's camera model (SIMPLE_RADIAL): keep it, at working size
         source = {f.name: f for f in scene.frames}
@@ -226,7 +256,7 @@ def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_
             replace(f, camera=source[f.name].camera.scaled(f.camera.width, f.camera.height),
                     focal_known=source[f.name].focal_known) for f in resized.frames])
         posed, missing = pose_scene(resized, resized_dir / IMAGE_DIR, Path(work), sfm, threads)
-        stats = _write_prepared(posed, out_dir, 0, undistort_fov)
+        stats = _write_prepared(posed, out_dir, 0, undistort_fov, threads=threads)
     cams = sorted({f.camera for f in posed.frames}, key=lambda c: c.params)
     return {**stats, "pose_source": "sfm", "unposed": missing, "photos": len(scene.frames),
             "sfm_cameras": [{"model": c.model, "params": [round(v, 6) for v in c.params]} for c in cams]}
