@@ -309,3 +309,35 @@ def test_matching_on_threads_gives_colmaps_one_thread_rows(small_mini, tmp_path)
     finally:
         os.chdir(cwd)
     assert _match_rows(db) == expected
+
+
+@pytest.mark.slow
+def test_posed_triangulation_on_threads_gives_one_threads_model(small_mini, tmp_path):
+    """The points' bundle adjustment in groups, side by side: the same model for any thread count, and
+    COLMAP's own point triangulator's (one problem, one thread) up to its solver's tolerance."""
+    import pycolmap
+
+    from usvc.sfm.point_triangulation import triangulate_posed
+    from usvc.sfm.reconstruction import extract, match, pipeline_options, posed_reconstruction
+
+    frames = read_scene_h5(small_mini / "scene.h5").split("train")
+    db = tmp_path / "database.db"
+    extract(frames, small_mini / IMAGE_DIR, db, OPTS, 2)
+    match(frames, db, tmp_path, OPTS, True, 2)
+
+    def points(rec):
+        return {tuple(sorted((e.image_id, e.point2D_idx) for e in p.track.elements)): p.xyz
+                for p in rec.points3D.values()}
+
+    models = [points(triangulate_posed(posed_reconstruction(frames, db), db, pipeline_options(OPTS), 300, threads))
+              for threads in (1, 3)]
+    assert len(models[0]) > 1500 and models[0].keys() == models[1].keys()
+    assert all(np.array_equal(models[0][k], models[1][k]) for k in models[0])
+    (tmp_path / "colmap").mkdir()
+    colmap = points(pycolmap.triangulate_points(posed_reconstruction(frames, db), db, small_mini / IMAGE_DIR,
+                                                tmp_path / "colmap", options=pipeline_options(OPTS),
+                                                refine_intrinsics=False))
+    same = models[0].keys() & colmap.keys()
+    assert len(same) >= 0.98 * max(len(colmap), len(models[0]))
+    gap = np.array([np.linalg.norm(models[0][k] - colmap[k]) for k in same])
+    assert np.median(gap) < 1e-6 and gap.max() < 1e-3

@@ -28,15 +28,16 @@ class SfmOptions:
     keyframe_min_translation: float = 0.04  # keyframes: drop a frame nearer than this x the capture's size (median camera distance from their centroid) to a kept keyframe ...; 0 = every frame
     keyframe_min_rotation_deg: float = 2.5  # ... and turned less than this many degrees from it; 0 = every frame
     reconstruction: str = "auto"  # auto: triangulate with the given poses held fixed, incremental when the scene has none | triangulate | incremental
+    points_per_problem: int = 1024  # triangulation with poses: the points' bundle adjustment solved in groups of this many points, side by side on the threads (the same model for any count); 0 = COLMAP's point_triangulator as one problem on one thread
     min_points: int = 100  # fewer triangulated points than this is a degenerate scene
-    num_threads: int = -1  # COLMAP threads for feature extraction and matching (the same matches for any count); -1 = the top-level threads setting
+    num_threads: int = -1  # COLMAP threads for feature extraction, matching and posed triangulation (the same matches and model for any count); -1 = the top-level threads setting
     seed: int = 0  # COLMAP's RANSAC seed, apart from the mapping seed so mapping seeds reuse the SfM
     verbose: bool = False  # show COLMAP's own per-image log (quiet unless asked)
 
     def problems(self) -> list[str]:
         out = one_of(self, "matching", MATCHING) + one_of(self, "reconstruction", RECONSTRUCTION)
         out += one_of(self, "extractor", EXTRACTORS)
-        out += non_negative(self, "keyframe_min_images") + in_range(self, "keyframe_min_translation", 0, float("inf"))
+        out += non_negative(self, "keyframe_min_images", "points_per_problem") + in_range(self, "keyframe_min_translation", 0, float("inf"))
         out += in_range(self, "keyframe_min_rotation_deg", 0, 180)
         return out + positive(self, "max_num_features", "exhaustive_max_images", "sequential_overlap",
                               "pose_pairs_per_image", "retrieval_neighbors", "retrieval_words")

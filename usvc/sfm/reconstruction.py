@@ -22,6 +22,7 @@ from usvc.sfm.keyframes import mapping_keyframes
 from usvc.sfm.opencv_extraction import write_opencv_features
 from usvc.sfm.options import SfmOptions
 from usvc.sfm.pair_matching import colmap_matching, exhaustive_pairs, image_names, match_pairs
+from usvc.sfm.point_triangulation import triangulate_posed
 from usvc.sfm.pose_check import pose_agreement, warn_if_poses_disagree
 from usvc.sfm.retrieval_pairs import retrieval_pairs
 
@@ -35,9 +36,10 @@ MIN_MAPPING_IMAGES = 3  # COLMAP's triangulator ignores two-view tracks
 
 
 def colmap_threads(opts: SfmOptions, threads: int) -> int:
-    """Feature extraction and matching threads: sfm.num_threads when set (> 0), else `threads`, the
-    caller's thread count (-1, COLMAP's default: all cores). Matching splits its pairs among them
-    (pair_matching), with the bits of one thread."""
+    """Feature extraction, matching and posed triangulation threads: sfm.num_threads when set (> 0),
+    else `threads`, the caller's thread count (-1, COLMAP's default: all cores). Matching splits its
+    pairs among them (pair_matching), triangulation its points (point_triangulation), each with the
+    bits of one thread."""
     return opts.num_threads if opts.num_threads > 0 else threads
 
 
@@ -171,8 +173,9 @@ def pipeline_options(opts: SfmOptions) -> pycolmap.IncrementalPipelineOptions:
     po.random_seed = opts.seed
     po.mapper.random_seed = opts.seed
     po.triangulation.random_seed = opts.seed
-    # Threaded bundle adjustment sums residuals in varying order; the resulting float noise
-    # flips point filtering at thresholds. Triangulation with fixed poses takes seconds anyway.
+    # COLMAP's threaded bundle adjustment sums residuals in varying order; the resulting float noise
+    # flips point filtering at thresholds. Triangulation with poses runs its own on several threads
+    # (point_triangulation: the same bits for any count).
     po.num_threads = 1
     po.mapper.num_threads = 1
     return po
@@ -248,7 +251,10 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
     model_dir = work_dir / "colmap_work"
     model_dir.mkdir(exist_ok=True)
     po = pipeline_options(opts)
-    if mode == "triangulate":
+    if mode == "triangulate" and opts.points_per_problem > 0:
+        rec = triangulate_posed(posed_reconstruction(frames, db_path), db_path, po, opts.points_per_problem,
+                                colmap_threads(opts, threads))
+    elif mode == "triangulate":
         rec = pycolmap.triangulate_points(
             posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
             refine_intrinsics=False,
