@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from usvc.core.artifact_names import SCENE_H5
 from usvc.core.atomic import WRITE_ERRNOS, WriteError, final_path
+from usvc.core.cores import cores_available
 from usvc.core.errors import SceneError
 from usvc.core.geometry import field_of_view_deg
 from usvc.core.images import read_photo
@@ -28,7 +29,6 @@ from usvc.core.ordered_pool import ordered_map
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import IMAGE_DIR, PackedDepth, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
-from usvc.pipeline.threads import cores_available
 from usvc.sfm.posing import pose_scene
 from usvc.sfm.reconstruction import MIN_MAPPING_IMAGES, SfmOptions
 

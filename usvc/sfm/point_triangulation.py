@@ -16,13 +16,13 @@ change.
 from __future__ import annotations
 
 import logging
-from contextlib import nullcontext
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import pycolmap
 
-from usvc.pipeline.threads import cores_available
+from usvc.core.cores import cores_available
 
 log = logging.getLogger(__name__)
 
