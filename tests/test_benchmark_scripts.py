@@ -337,3 +337,31 @@ def test_scaling_runs_every_stage_at_two_sizes_and_plots_them(tmp_path):
     assert built < min(i for i, line in enumerate(lines) if " query round" in line)
     assert (tmp_path / "reports" / "pipeline_scaling_smoke.png").stat().st_size > 10_000
     assert not any((checkout / "data").glob("room*")) and not any((checkout / "results").glob("room*"))
+
+
+@pytest.mark.slow
+def test_triangulation_benchmark_times_the_three_ways_on_one_scenes_matches(tmp_path):
+    """`pipeline triangulation` on a small generated room: each way's seconds per round, its points
+    (COLMAP's within 2 % of the groups'), and the groups' one model for one and two threads."""
+    from usvc.generate.params import RoomParams
+    from usvc.generate.writer import generate_scene
+    from usvc.prepare.importers import load_scene
+    from usvc.prepare.working_images import prepare_scene
+
+    generate_scene(tmp_path / "raw", RoomParams(frames_per_map_sequence=8, n_query_frames=2, supersample=1))
+    prepared = tmp_path / "room" / "prepared"
+    prepared.mkdir(parents=True)
+    prepare_scene(load_scene("ace", tmp_path / "raw", "room", "given"), prepared, working_width=0)
+    env = {**os.environ, "USVC_BENCHMARK_DIR": str(tmp_path / "reports"), "OMP_NUM_THREADS": "2"}
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.pipeline", "triangulation", "--scene-dir",
+                           str(tmp_path / "room"), "--threads", "2", "--rounds", "2", "--points-per-problem", "200",
+                           "--variant", "smoke"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads((tmp_path / "reports" / "pipeline_triangulation_room_smoke.json").read_text())
+    ways = report["ways"]
+    assert list(ways) == ["colmap_one_problem_1_thread", "groups_1_thread", "groups_2_threads"]
+    assert all(len(w["seconds"]) == 2 and w["median_s"] > 0 and w["same_model_every_round"] for w in ways.values())
+    assert ways["groups_1_thread"]["points"] == ways["groups_2_threads"]["points"] > 300
+    assert abs(ways["colmap_one_problem_1_thread"]["points"] - ways["groups_1_thread"]["points"]) <= \
+        0.02 * ways["groups_1_thread"]["points"]
+    assert report["groups_same_model_for_any_thread_count"] and report["mapping_frames"] == 16
