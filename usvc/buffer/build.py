@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import cv2
@@ -24,7 +23,7 @@ from usvc.buffer.keypoint_obs import sample_features, view_observations
 from usvc.buffer.options import BufferOptions
 from usvc.core.errors import UsvcError
 from usvc.core.options import check
-from usvc.core.ordered_pool import ordered_map
+from usvc.core.ordered_pool import library_threads, ordered_map
 from usvc.core.precision import autocast, resolve_precision
 from usvc.core.scene import Frame
 from usvc.keypoints.keypoints_file import SceneKeypoints
@@ -136,16 +135,6 @@ def encoder_workers(device: str) -> int:
     return max(1, torch.get_num_threads()) if str(device).startswith("cpu") else 1
 
 
-@contextmanager
-def _torch_threads(count: int) -> Iterator[None]:
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def _encode(encoder: Encoder, plan: _PlannedView, precision: str, device: str,
             ) -> tuple[np.ndarray, np.ndarray | None]:
     """One view's sampled cells (take, C) and its keypoints' features, fp16 on the host."""
@@ -168,7 +157,7 @@ def _encoded(encoder: Encoder, plans: Iterator[_PlannedView], precision: str, de
         for plan in plans:
             yield (plan, *_encode(encoder, plan, precision, device))
         return
-    with _torch_threads(1):
+    with library_threads(torch.get_num_threads, torch.set_num_threads, 1):
         for plan, (cells, kp) in ordered_map(lambda p: _encode(encoder, p, precision, device), plans, workers,
                                              name="usvc-encode"):
             yield plan, cells, kp

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -36,3 +37,15 @@ def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int, *, ahead
         finally:
             for _, job in pending:  # an error or an abandoned loop: run nothing more
                 job.cancel()
+
+
+@contextmanager
+def library_threads(get: Callable[[], int], set_: Callable[[int], object], count: int) -> Iterator[None]:
+    """A library's own thread pool (torch's, OpenCV's) held at `count` threads, then set back: one
+    each while `ordered_map` runs items side by side."""
+    before = get()
+    set_(count)
+    try:
+        yield
+    finally:
+        set_(before)

@@ -11,7 +11,6 @@ import contextlib
 import hashlib
 import logging
 import tempfile
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from usvc.core.cores import cores_available
 from usvc.core.errors import SceneError
 from usvc.core.geometry import field_of_view_deg
 from usvc.core.images import read_photo
-from usvc.core.ordered_pool import ordered_map
+from usvc.core.ordered_pool import library_threads, ordered_map
 from usvc.core.scene import Camera, Frame, Scene
 from usvc.core.scene_file import IMAGE_DIR, PackedDepth, read_scene_h5, write_scene_h5
 from usvc.core.undistort import check_distortion, undistort
@@ -196,7 +195,7 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
     depths: list[PackedDepth | None] = []
     contents: dict[str, list[str]] = {}  # pixel hash -> mapping images with exactly these pixels
     workers = min(threads if threads > 0 else cores_available(), len(scene.frames))
-    with _opencv_threads(1 if workers > 1 else cv2.getNumThreads()):  # one photo a thread
+    with library_threads(cv2.getNumThreads, cv2.setNumThreads, 1 if workers > 1 else cv2.getNumThreads()):
         done = ordered_map(lambda f: _prepared_image(f, out_dir, working_width, undistort_fov, where),
                            scene.frames, workers, name="usvc-prepare")
         for frame, (out_frame, depth, digest) in tqdm(done, total=len(scene.frames), desc=f"prepare {scene.name}",
@@ -227,16 +226,6 @@ def _write_prepared(scene: Scene, out_dir: Path, working_width: int, undistort_f
     }
     log.info("prepared %s: %s", scene.name, stats)
     return stats
-
-
-@contextlib.contextmanager
-def _opencv_threads(count: int) -> Iterator[None]:
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(count)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
 
 
 def _prepare_unposed(scene: Scene, out_dir: Path, working_width: int, undistort_fov: str,
