@@ -4,7 +4,8 @@
                                                   #   serve-load
     python -m benchmarks.train SUBCOMMAND ...     # what training costs: throughput, profile, bundle-cost,
                                                   #   side-by-side, busy-machine, splat-render
-    python -m benchmarks.pipeline SUBCOMMAND ...  # whole pipelines: time, fresh, device, scaling
+    python -m benchmarks.pipeline SUBCOMMAND ...  # whole pipelines: time, fresh, device, scaling,
+                                                  #   triangulation
     python -m benchmarks.accuracy SUBCOMMAND ...  # how right the answers are: baseline-sift, compare-poses,
                                                   #   confidence, diagnose-map, focal, keypoints, pnp-solvers,
                                                   #   sfm-posing, wrong-prior
