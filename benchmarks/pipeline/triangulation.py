@@ -5,7 +5,8 @@ bundle adjustment in groups (`sfm.points_per_problem`), on one thread and on `--
 SIFT extraction and matching run once (the sfm stage's options, the scene's keyframes); then each
 way is timed once a round, the ways alternated over `--rounds` rounds. The report holds each way's
 seconds per round and median, its points, and whether the groups gave one model for both thread
-counts (a digest of every point's position and track).
+counts (a digest of every point's position and track), in
+`results/benchmarks/pipeline_triangulation_<scene folder>[_<variant>].json`.
 
     python -m benchmarks.pipeline triangulation --scene-dir data/room960 --threads 2
 """
