@@ -329,15 +329,24 @@ def test_posed_triangulation_on_threads_gives_one_threads_model(small_mini, tmp_
         return {tuple(sorted((e.image_id, e.point2D_idx) for e in p.track.elements)): p.xyz
                 for p in rec.points3D.values()}
 
-    models = [points(triangulate_posed(posed_reconstruction(frames, db), db, pipeline_options(OPTS), 300, threads))
-              for threads in (1, 3)]
+    def colours(rec):
+        return {tuple(sorted((e.image_id, e.point2D_idx) for e in p.track.elements)): tuple(p.color)
+                for p in rec.points3D.values()}
+
+    recs = [triangulate_posed(posed_reconstruction(frames, db), db, small_mini / IMAGE_DIR, pipeline_options(OPTS),
+                              300, threads) for threads in (1, 3)]
+    models = [points(rec) for rec in recs]
     assert len(models[0]) > 1500 and models[0].keys() == models[1].keys()
     assert all(np.array_equal(models[0][k], models[1][k]) for k in models[0])
     (tmp_path / "colmap").mkdir()
-    colmap = points(pycolmap.triangulate_points(posed_reconstruction(frames, db), db, small_mini / IMAGE_DIR,
-                                                tmp_path / "colmap", options=pipeline_options(OPTS),
-                                                refine_intrinsics=False))
+    colmap_rec = pycolmap.triangulate_points(posed_reconstruction(frames, db), db, small_mini / IMAGE_DIR,
+                                             tmp_path / "colmap", options=pipeline_options(OPTS),
+                                             refine_intrinsics=False)
+    colmap = points(colmap_rec)
     same = models[0].keys() & colmap.keys()
     assert len(same) >= 0.98 * max(len(colmap), len(models[0]))
     gap = np.array([np.linalg.norm(models[0][k] - colmap[k]) for k in same])
     assert np.median(gap) < 1e-6 and gap.max() < 1e-3
+    ours, theirs = colours(recs[0]), colours(colmap_rec)  # coloured from the images, as COLMAP's
+    assert ours == colours(recs[1]) and all(ours[k] == theirs[k] for k in same)
+    assert np.mean([max(c) > 0 for c in ours.values()]) > 0.99

@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> None:
                     rec = pycolmap.triangulate_points(posed_reconstruction(frames, db), db, images, out,
                                                       options=pipeline_options(opts), refine_intrinsics=False)
                 else:
-                    rec = triangulate_posed(posed_reconstruction(frames, db), db, pipeline_options(opts),
+                    rec = triangulate_posed(posed_reconstruction(frames, db), db, images, pipeline_options(opts),
                                             args.points_per_problem, threads)
                 seconds[way].append(round(time.perf_counter() - start, 3))
                 digests[way].add(model_digest(rec))

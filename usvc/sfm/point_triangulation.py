@@ -10,7 +10,7 @@ group is one problem solved on one thread, and the groups run side by side: the 
 thread count. The rest is COLMAP's own, in its order: each image triangulated, tracks completed and
 merged, retriangulation, then up to `ba_global_max_refinements` rounds of adjustment, track
 completion and filtering until fewer than `ba_global_max_refinement_change` of the observations
-change.
+change, and each point's colour the mean of its observations' pixels.
 """
 
 from __future__ import annotations
@@ -56,10 +56,11 @@ def _adjust_points(rec: pycolmap.Reconstruction, ba: pycolmap.BundleAdjustmentOp
             pass
 
 
-def triangulate_posed(rec: pycolmap.Reconstruction, db_path: Path, po: pycolmap.IncrementalPipelineOptions,
-                      points_per_problem: int, threads: int) -> pycolmap.Reconstruction:
-    """Triangulate the matches in `db_path` into `rec` (its images posed, no points yet) and refine the
-    points with their poses fixed, on `threads` threads (-1: every core this process may use);
+def triangulate_posed(rec: pycolmap.Reconstruction, db_path: Path, image_dir: Path,
+                      po: pycolmap.IncrementalPipelineOptions, points_per_problem: int,
+                      threads: int) -> pycolmap.Reconstruction:
+    """Triangulate the matches in `db_path` into `rec` (its images posed, no points yet), refine the
+    points with their poses fixed and colour them from the images in `image_dir`, on `threads` threads (-1: every core this process may use);
     returns the model (the same for any `threads`)."""
     po = _fixed_pose_options(po)
     threads = threads if threads > 0 else cores_available()
@@ -91,6 +92,7 @@ def triangulate_posed(rec: pycolmap.Reconstruction, db_path: Path, po: pycolmap.
             if observations == 0 or changed / observations < po.ba_global_max_refinement_change:
                 break
     mapper.clear_modified_points3D()
+    rec.extract_colors_for_all_images(str(image_dir), num_threads=1)  # as COLMAP's triangulator ends
     log.debug("triangulated %d points from %d images", rec.num_points3D(), rec.num_reg_images())
     return rec
 

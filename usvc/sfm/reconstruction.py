@@ -252,8 +252,8 @@ def reconstruct(frames: list[Frame], image_dir: Path, work_dir: Path, opts: SfmO
     model_dir.mkdir(exist_ok=True)
     po = pipeline_options(opts)
     if mode == "triangulate" and opts.points_per_problem > 0:
-        rec = triangulate_posed(posed_reconstruction(frames, db_path), db_path, po, opts.points_per_problem,
-                                colmap_threads(opts, threads))
+        rec = triangulate_posed(posed_reconstruction(frames, db_path), db_path, image_dir, po,
+                                opts.points_per_problem, colmap_threads(opts, threads))
     elif mode == "triangulate":
         rec = pycolmap.triangulate_points(
             posed_reconstruction(frames, db_path), db_path, image_dir, model_dir, options=po,
