@@ -16,10 +16,15 @@ to six threads fight for two, and OpenBLAS's threads spin while they wait for wo
 the other side needs.
 
 So while a query's side work runs beside it, the threads are split (`split`): the network runs
-on torch's threads less the side's share, and OpenCV and BLAS on the side's share (one thread
-each on two cores). Each thread then keeps a core of its own. The split is the same every time
-for a given thread count, so the answers are the same bits every run; on two cores they are
-those of `threads=1` (every library on one thread), only computed on two cores at once.
+on torch's threads less the side's share, and BLAS on the side's share (one thread each on two
+cores). OpenCV keeps all of the query's threads: its SIFT is the side's longest work and outlasts
+the network and the learned pose (on the room at 960 frames 45 ms on one thread, 27 on two,
+against ~25 ms), so once they are done it takes the main thread's core too, where the main thread
+would only wait for it (6 ms off a query there, docs/speed.md); the main thread's own OpenCV calls
+meanwhile run no parallel loops that matter. The split is the same every time for a given thread
+count, so the answers are the same bits every run; on two cores they are those of `threads=1`
+(every library on one thread: OpenCV's SIFT gives the same keypoints on any count), only computed
+on two cores at once.
 
 The thread pools are the process's: the first query that enters sets them, the last that leaves
 puts them back as they were, so queries overlapping in several threads of a process agree.
@@ -75,13 +80,14 @@ def _shared(name: str, apply: Callable[[], Callable[[], None]]) -> Iterator[None
                 _UNDO.pop(name)()
 
 
-def side_libraries(threads: int) -> AbstractContextManager[None]:
-    """OpenCV's and BLAS's pools at `threads` while any query is inside; then as they were."""
+def side_libraries(threads: int, opencv: int | None = None) -> AbstractContextManager[None]:
+    """OpenCV's and BLAS's pools at `threads` (OpenCV's at `opencv` where given) while any query is
+    inside; then as they were."""
     import cv2
 
     def apply() -> Callable[[], None]:
         before = cv2.getNumThreads()
-        cv2.setNumThreads(threads)
+        cv2.setNumThreads(threads if opencv is None else opencv)
         blas = _blas().limit(limits=threads)  # puts the limits back when told
 
         def undo() -> None:
@@ -111,11 +117,12 @@ def products_on_own_threads() -> AbstractContextManager[None]:
 
 @contextmanager
 def query_split(threads: int) -> Iterator[None]:
-    """A query on `threads` threads whose side work runs beside it: OpenCV and BLAS at the side's
-    share meanwhile, and `for_network` (on this thread) at the network's."""
+    """A query on `threads` threads whose side work runs beside it: BLAS at the side's share
+    meanwhile, OpenCV (the side's SIFT) at all `threads`, and `for_network` (on this thread) at the
+    network's."""
     network, side = split(threads)
     before = getattr(_LOCAL, "network", None)
-    with side_libraries(side):
+    with side_libraries(side, opencv=threads):
         _LOCAL.network = network
         try:
             yield

@@ -65,6 +65,8 @@ class ImageRetrieval:
         similarity = self.codes() @ query
         images = np.sort(np.lexsort((np.arange(self.images), -similarity))[:k])
         observed = self.landmarks.observations.landmark
-        rows = np.unique(np.concatenate([observed[slice(*self._slices[i])] for i in images if i in self._slices]
-                                        or [np.zeros(0, np.int64)])).astype(np.int64)
-        return Retrieved(images.astype(np.int64), rows)
+        seen = np.zeros(len(self.landmarks.xyz), bool)  # a mask, not a sort of the observations: sorted rows alike
+        for i in images:
+            if i in self._slices:
+                seen[observed[slice(*self._slices[i])]] = True
+        return Retrieved(images.astype(np.int64), np.flatnonzero(seen).astype(np.int64))
