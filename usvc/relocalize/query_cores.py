@@ -20,7 +20,7 @@ on torch's threads less the side's share, and BLAS on the side's share (one thre
 cores). OpenCV keeps all of the query's threads: its SIFT is the side's longest work and outlasts
 the network and the learned pose (on the room at 960 frames 45 ms on one thread, 27 on two,
 against ~25 ms), so once they are done it takes the main thread's core too, where the main thread
-would only wait for it (6 ms off a query there, docs/speed.md); the main thread's own OpenCV calls
+would only wait for it (5-6 ms off a query there, docs/speed.md); the main thread's own OpenCV calls
 meanwhile run no parallel loops that matter. The split is the same every time for a given thread
 count, so the answers are the same bits every run; on two cores they are those of `threads=1`
 (every library on one thread: OpenCV's SIFT gives the same keypoints on any count), only computed
