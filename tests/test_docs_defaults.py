@@ -247,7 +247,7 @@ CHECKERS = [step_rule_problems, default_steps_problems, precision_problems, comm
 
 def test_the_defaults_the_checks_read():
     """What the checks compare against: the rule gives the committed mini run's steps, and the
-    committed run's precision is what `auto` gives on the CPU CI ran on (AVX2: fp32)."""
+    committed run's precision is what `auto` gives on the CPU it ran on (bf16 or fp32)."""
     assert train_defaults() == TrainOptions() and buffer_defaults() == BufferOptions()
     assert TrainOptions().iterations == 0  # steps come from passes over the buffer
     buf, train = committed("buffer"), committed("train")
