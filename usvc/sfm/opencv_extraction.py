@@ -17,6 +17,7 @@ import pycolmap
 
 from usvc.core import opencv_sift
 from usvc.core.images import read_image_bgr
+from usvc.core.ordered_pool import library_threads
 
 
 def image_features(path: Path, max_features: int) -> tuple[np.ndarray, np.ndarray]:
@@ -35,19 +36,15 @@ def write_opencv_features(db_path: Path, image_dir: Path, names: list[str], max_
         missing = [n for n in names if n not in ids]
         if missing:
             raise ValueError(f"images not registered in {db_path}: {missing[:3]}")
-        previous = cv2.getNumThreads()
-        cv2.setNumThreads(1)
-        try:
-            with ThreadPoolExecutor(max_workers=max(1, int(threads)), thread_name_prefix="usvc-sift") as pool:
-                found = pool.map(lambda n: image_features(image_dir / n, max_features), names)
-                total = 0
-                for name, (keypoints, descriptors) in zip(names, found):
-                    db.write_keypoints(ids[name], keypoints)
-                    db.write_descriptors(ids[name], pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
-                                                                                descriptors))
-                    total += len(keypoints)
-        finally:
-            cv2.setNumThreads(previous)
+        with library_threads(cv2.getNumThreads, cv2.setNumThreads, 1), \
+                ThreadPoolExecutor(max_workers=max(1, int(threads)), thread_name_prefix="usvc-sift") as pool:
+            found = pool.map(lambda n: image_features(image_dir / n, max_features), names)
+            total = 0
+            for name, (keypoints, descriptors) in zip(names, found):
+                db.write_keypoints(ids[name], keypoints)
+                db.write_descriptors(ids[name], pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                                            descriptors))
+                total += len(keypoints)
     finally:
         db.close()
     return total

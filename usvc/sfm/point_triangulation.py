@@ -60,8 +60,8 @@ def triangulate_posed(rec: pycolmap.Reconstruction, db_path: Path, image_dir: Pa
                       po: pycolmap.IncrementalPipelineOptions, points_per_problem: int,
                       threads: int) -> pycolmap.Reconstruction:
     """Triangulate the matches in `db_path` into `rec` (its images posed, no points yet), refine the
-    points with their poses fixed and colour them from the images in `image_dir`, on `threads` threads (-1: every core this process may use);
-    returns the model (the same for any `threads`)."""
+    points with their poses fixed and colour them from the images in `image_dir`, on `threads`
+    threads (-1: every core this process may use); returns the model (the same for any `threads`)."""
     po = _fixed_pose_options(po)
     threads = threads if threads > 0 else cores_available()
     db = pycolmap.Database.open(db_path)
